@@ -1,0 +1,7 @@
+"""torchrl_wbrm: TorchRL components for Deep Weighted Bellman Residual Minimization (WBRM).
+
+Layers, lowest first (a layer imports only from layers below it):
+``envs`` → ``policies`` → ``data`` → ``modules`` → ``objectives`` → ``evaluation`` → ``training``.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,24 @@
+"""Offline datasets: collection with torchrl's Collector, the D / S^b / S^e split, replay buffers, save/load."""
+from torchrl_wbrm.data.datasets import (
+    OfflineDatasets,
+    PairedSampler,
+    collect_transitions,
+    episode_returns,
+    make_replay_buffer,
+    split_by_episode,
+)
+from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
+from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
+
+__all__ = [
+    "OfflineDatasets",
+    "PairedSampler",
+    "collect_transitions",
+    "episode_returns",
+    "make_replay_buffer",
+    "split_by_episode",
+    "LQRDataConfig",
+    "make_lqr_datasets",
+    "MountainCarDataConfig",
+    "make_mountain_car_datasets",
+]
