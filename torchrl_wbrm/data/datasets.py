@@ -49,6 +49,8 @@ TRANSITION_KEYS = (
 )
 STATE_ACTION_KEYS = ("observation", "action")
 PARTS = ("transitions", "behaviour_samples", "expert_samples")
+#: torch's global generator (policy noise) is seeded with ``seed + POLICY_SEED_OFFSET``, the env with ``seed``.
+POLICY_SEED_OFFSET = 7_919_981
 
 
 def collect_transitions(
@@ -72,7 +74,9 @@ def collect_transitions(
         total_frames: number of transitions to return.
         frames_per_batch: collector batch (defaults to ``min(total_frames, env.batch_size.numel() * 1000)``,
             rounded to a multiple of the env's batch size).
-        seed: seeds the env (``collector.set_seed``) and torch's global generator (the policies' noise).
+        seed: seeds the env (``collector.set_seed(seed)``) and torch's global generator (the policies' noise)
+            with a *different* seed: an env generator and torch's generator seeded alike draw the same
+            numbers, which would correlate the action noise with the initial state and the transition noise.
         episode_offset: added to the episode ids.
     """
     if total_frames <= 0:
@@ -83,7 +87,7 @@ def collect_transitions(
     frames_per_batch = max(n_envs, (frames_per_batch // n_envs) * n_envs)
     total = math.ceil(total_frames / frames_per_batch) * frames_per_batch
     if seed is not None:
-        torch.manual_seed(seed)
+        torch.manual_seed(seed + POLICY_SEED_OFFSET)
     collector = Collector(
         env, policy, frames_per_batch=frames_per_batch, total_frames=total, auto_register_policy_transforms=False
     )
@@ -92,7 +96,7 @@ def collect_transitions(
     batches = []
     try:
         for batch in collector:
-            batches.append(batch.reshape(-1).copy())
+            batches.append(batch.reshape(-1).clone())  # the collector reuses its buffers
     finally:
         collector.shutdown(close_env=False)
     data = torch.cat(batches, 0)[:total_frames]

@@ -344,7 +344,8 @@ class LQREnv(EnvBase):
         ``= v0 - x'Sx - a'Ra - gamma (Fx + Ga)' P (Fx + Ga)`` (unclipped reward, infinite horizon).
         """
         P, _ = self.riccati()
-        P, F, G, R, S = (t.to(observation) for t in (P, self._F, self._G, self._R, self._S))
+        F, G, R, S = (torch.as_tensor(self._np[k]) for k in "FGRS")  # float64: exact to the dtype of x
+        P, F, G, R, S = (t.to(observation) for t in (P, F, G, R, S))
         mean_next = observation @ F.T + action @ G.T
         quad = lambda v, M: ((v @ M) * v).sum(-1, keepdim=True)  # noqa: E731
         return self.value_offset() - quad(observation, S) - quad(action, R) - self.config.gamma * quad(mean_next, P)
