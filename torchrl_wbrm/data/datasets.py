@@ -187,9 +187,10 @@ class OfflineDatasets:
         scratch_dir: str | os.PathLike | None = None,
     ) -> "OfflineDatasets":
         for name, td in zip(PARTS, (transitions, behaviour_samples, expert_samples)):
-            if td.ndim != 1 or td.shape[0] == 0:
-                what = "empty" if td.numel() == 0 else f"of batch shape {tuple(td.shape)}"
-                raise ValueError(f"The {name} set is {what}: expected a non-empty flat set of samples.")
+            if td.numel() == 0:
+                raise ValueError(f"The {name} set is empty: collect at least one {name.replace('_', ' ')} sample.")
+            if td.ndim != 1:
+                raise ValueError(f"The {name} set has batch shape {tuple(td.shape)}: expected a flat set [N].")
         bufs = [
             make_replay_buffer(
                 td, storage=storage, scratch_dir=None if scratch_dir is None else Path(scratch_dir) / name

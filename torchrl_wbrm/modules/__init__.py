@@ -1,0 +1,40 @@
+"""Network builders: Q networks, a bounded actor, the positive bounded density-ratio network, action maximisers."""
+from __future__ import annotations
+
+from torchrl_wbrm.modules.density_ratio import (
+    DEFAULT_PARAMETERISATION,
+    PARAMETERISATIONS,
+    BoundedRatio,
+    DensityRatioNetwork,
+)
+from torchrl_wbrm.modules.maximisers import (
+    ActionMaximiser,
+    ActorMaximiser,
+    GreedyDiscreteMaximiser,
+    SampledActionMaximiser,
+    max_q_over_candidates,
+    uniform_actions,
+)
+from torchrl_wbrm.modules.networks import (
+    BoundedTanh,
+    make_deterministic_actor,
+    make_discrete_q_network,
+    make_q_network,
+)
+
+__all__ = [
+    "ActionMaximiser",
+    "ActorMaximiser",
+    "BoundedRatio",
+    "BoundedTanh",
+    "DEFAULT_PARAMETERISATION",
+    "DensityRatioNetwork",
+    "GreedyDiscreteMaximiser",
+    "PARAMETERISATIONS",
+    "SampledActionMaximiser",
+    "make_deterministic_actor",
+    "make_discrete_q_network",
+    "make_q_network",
+    "max_q_over_candidates",
+    "uniform_actions",
+]

@@ -1,0 +1,63 @@
+"""Input checks shared by the losses: a missing key, a per-sample shape, a sign. """
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+
+_REDUCTIONS = ("mean", "sum", "none")
+
+
+def check_reduction(reduction: str | None) -> str:
+    """``None`` means ``"mean"``; anything outside ``("mean", "sum", "none")`` is a ValueError."""
+    if reduction is None:
+        return "mean"
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction must be one of {_REDUCTIONS} or None, got {reduction!r}.")
+    return reduction
+
+
+def reduce_batch(value: torch.Tensor, reduction: str) -> torch.Tensor:
+    """``"mean"``, ``"sum"`` over every element, or ``"none"`` (unchanged)."""
+    if reduction == "mean":
+        return value.mean()
+    if reduction == "sum":
+        return value.sum()
+    return value
+
+
+def get_entry(tensordict: TensorDictBase, key: NestedKey, why: str) -> torch.Tensor:
+    """``tensordict.get(key)``, or a KeyError that names the key, says why it is needed, and lists what is there."""
+    value = tensordict.get(key, default=None)
+    if value is None:
+        present = sorted(str(k) for k in tensordict.keys(True, True))
+        raise KeyError(f"Missing key {key!r} ({why}). The input holds: {present}.")
+    return value
+
+
+def per_sample(value: torch.Tensor, batch_shape: torch.Size, key: NestedKey) -> torch.Tensor:
+    """View a per-sample entry of shape ``[*B]`` or ``[*B, 1]`` as ``[*B]``; any other shape is a ValueError."""
+    if value.shape == batch_shape:
+        return value
+    if value.shape == (*batch_shape, 1):
+        return value.squeeze(-1)
+    raise ValueError(
+        f"Entry {key!r} has shape {tuple(value.shape)}; expected one value per sample, "
+        f"i.e. shape {tuple(batch_shape)} or {(*batch_shape, 1)}."
+    )
+
+
+def check_sign(value: torch.Tensor, key: NestedKey, *, strictly_positive: bool) -> None:
+    """Raise ValueError if ``value`` has a negative (or, if ``strictly_positive``, a zero) or non-finite entry.
+
+    The check runs on CPU tensors only: on an accelerator it would need a host sync (and ``torch._assert_async``
+    leaves a CUDA context unusable after a failure), so there it is skipped.
+    """
+    if value.device.type != "cpu":
+        return
+    ok = (value > 0) if strictly_positive else (value >= 0)
+    ok = (ok & torch.isfinite(value)).all()
+    expected = "strictly positive" if strictly_positive else "non-negative"
+    message = f"Entry {key!r} must be finite and {expected}."
+    if not bool(ok):
+        raise ValueError(f"{message} Got min {value.min().item():.4g}, max {value.max().item():.4g}.")

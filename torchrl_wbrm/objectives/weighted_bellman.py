@@ -1,0 +1,513 @@
+"""Stage 2 of WBRM: the weighted Bellman residual loss, Section 3 of the paper."""
+from __future__ import annotations
+
+from contextlib import nullcontext
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch, TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.data import Bounded, Composite, TensorSpec
+from torchrl.modules import QValueActor
+from torchrl.objectives.common import LossModule
+from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
+from torchrl.objectives.value import ValueEstimatorBase
+
+from torchrl_wbrm.modules.maximisers import (
+    ActionMaximiser,
+    ActorMaximiser,
+    GreedyDiscreteMaximiser,
+    SampledActionMaximiser,
+)
+from torchrl_wbrm.objectives._utils import check_reduction, check_sign, get_entry, per_sample, reduce_batch
+
+__all__ = ["RESIDUALS", "WeightedBellmanLoss", "weighted_bellman_residual"]
+
+RESIDUALS = ("squared", "absolute_mean")
+
+
+def weighted_bellman_residual(
+    q_value: torch.Tensor,
+    target_value: torch.Tensor,
+    weight: torch.Tensor,
+    *,
+    residual: str = "squared",
+    reduction: str = "mean",
+) -> torch.Tensor:
+    r"""The weighted Bellman residual of Section 3 ("Methodology").
+
+    With ``δ_i = Q(X_i, A_i) − Y_i`` and ``Y_i = R_i + γ (1 − terminated_i) max_{a'} Q(X'_i, a')`` (the paper's
+    ``Y_i := R_i + γ max_{A'} Q(X'_i, A')``, with no bootstrap after a termination):
+
+    - ``"absolute_mean"`` (the paper's empirical loss): ``L̂_ŵ(Q) = | (1/n) Σ_i ŵ(X_i, A_i) δ_i |``. Note this is one
+      equation per batch: on its own it pins Q only up to directions orthogonal to ŵ (DESIGN.md measured that it
+      learns little more than Q's constant offset).
+    - ``"squared"``: ``(1/n) Σ_i ŵ(X_i, A_i) δ_i²`` (no ½ factor).
+
+    Args:
+        q_value (Tensor): ``Q(X_i, A_i)``, shape ``[*B]``.
+        target_value (Tensor): ``Y_i``, shape ``[*B]``.
+        weight (Tensor): ``ŵ(X_i, A_i) ≥ 0``, shape ``[*B]``.
+
+    Keyword Args:
+        residual (str): ``"squared"`` (default) or ``"absolute_mean"``.
+        reduction (str): ``"mean"`` (default), ``"sum"`` or ``"none"``: per-sample ``ŵ_i δ_i²`` (squared), or the
+            signed per-sample ``ŵ_i δ_i`` before the absolute value (absolute_mean).
+
+    Examples:
+        >>> import torch
+        >>> q, y, w = torch.tensor([1.0, 2.0]), torch.tensor([0.0, 0.0]), torch.tensor([1.0, 0.5])
+        >>> weighted_bellman_residual(q, y, w, residual="squared")  # (1·1 + 0.5·4) / 2
+        tensor(1.5000)
+        >>> weighted_bellman_residual(q, y, w, residual="absolute_mean")  # |(1·1 + 0.5·2) / 2|
+        tensor(1.)
+    """
+    td_error = q_value - target_value
+    if residual == "squared":
+        return reduce_batch(weight * td_error.pow(2), reduction)
+    if residual == "absolute_mean":
+        weighted = reduce_batch(weight * td_error, reduction)
+        return weighted if reduction == "none" else weighted.abs()
+    raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
+
+
+class WeightedBellmanLoss(LossModule):
+    r"""The ŵ-weighted Bellman residual for ``Q ≈ Q*`` (Section 3, "Methodology"; equation in
+    :func:`weighted_bellman_residual`).
+
+    ``δ_i = Q(x_i, a_i) − r_i − γ (1 − terminated_i) · max_{a'} Q(x'_i, a')``;
+    ``residual="squared"``: ``mean_i ŵ_i δ_i²``; ``residual="absolute_mean"``: ``| mean_i ŵ_i δ_i |`` (the paper).
+    ŵ is the density ratio dP^{π^e}/dP^{π^b} fitted by
+    :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss`, read per sample from ``"density_ratio"``.
+
+    The max over next actions (:mod:`torchrl_wbrm.modules.maximisers`):
+
+    - discrete actions (``value_network`` a :class:`~torchrl.modules.QValueActor` or any module writing
+      ``"action_value"``): the max over the Q head, as TorchRL's DQNLoss;
+    - continuous actions with an ``actor_network`` μ: ``Q(x', μ(x'))`` (DDPG / TD3+BC), and a second loss
+      ``"loss_actor" = −mean_i Q(x_i, μ(x_i))`` (optionally ŵ-weighted, optionally with TD3+BC's behaviour-cloning
+      term);
+    - continuous actions with ``maximiser="sampled"``: the best of uniform samples in ``action_spec`` (plus μ(x')
+      when an actor exists); no actor needed.
+
+    Bootstrapping: ``delay_value=True`` evaluates the max with a frozen copy of Q (target parameters, no gradient;
+    update them with :class:`~torchrl.objectives.SoftUpdate` / :class:`~torchrl.objectives.HardUpdate`).
+    ``delay_value=False`` is residual-gradient minimisation: the gradient flows through both ``Q(x, a)`` and
+    ``max Q(x', ·)``. Truncation (``done`` without ``terminated``) bootstraps; termination does not.
+
+    γ is set with ``make_value_estimator(gamma=...)`` (:class:`~torchrl.objectives.value.TD0Estimator`, the only
+    supported estimator). Without that call TorchRL's default ``gamma = 0.99`` applies (the paper's LQR uses 0.9).
+
+    Relation to TorchRL's :class:`~torchrl.objectives.DQNLoss`: ``distance_loss(..., "l2")`` is
+    ``F.mse_loss(reduction="none")``, i.e. ``δ²`` with **no** ½ factor. With all weights 1 (or
+    ``use_weights=False``), ``residual="squared"`` and ``delay_value=True``, ``"loss_value"`` therefore equals
+    DQNLoss's ``"loss"`` with ``loss_function="l2"`` exactly (tested).
+
+    Args:
+        value_network (TensorDictModule): Q. Continuous actions: reads ``"observation"``, ``"action"`` (its
+            in_keys) and writes ``"state_action_value"`` of shape ``[*B, 1]``. Discrete actions: reads the
+            observation and writes ``"action_value"`` of shape ``[*B, n_actions]``; actions in the data are one-hot
+            ``[*B, n]`` or indices ``[*B]`` / ``[*B, 1]``.
+
+    Keyword Args:
+        actor_network (TensorDictModule, optional): a deterministic actor μ writing ``"action"`` (continuous only).
+        residual (str): ``"squared"`` (default) or ``"absolute_mean"`` (the paper's form).
+        delay_value (bool): frozen target Q (``True``, default) or residual gradient (``False``).
+        delay_actor (bool, optional): target copy of the actor for μ(x'). Defaults to ``delay_value``.
+        use_weights (bool): read ŵ from ``"density_ratio"`` (``True``, default; a missing entry is a KeyError) or
+            use weight 1 for every sample (the unweighted baseline).
+        maximiser (str or ActionMaximiser, optional): ``"discrete"``, ``"actor"``, ``"sampled"`` or an instance.
+            Defaults to ``"discrete"`` for a Q head, ``"actor"`` with an actor, ``"sampled"`` otherwise.
+        action_spec (Bounded, optional): action box for ``"sampled"``; defaults to the actor's spec if it has one.
+        num_action_samples (int): uniform candidates per state for ``"sampled"``. Defaults to ``64``.
+        weight_actor_loss (bool): weight each sample's actor loss by ŵ. Defaults to ``False``.
+        bc_alpha (float, optional): TD3+BC's α. If given, ``loss_actor = mean_i [−λ Q(x_i, μ(x_i)) +
+            mean_j (μ(x_i)_j − a_ij)²]`` with ``λ = α / mean|Q(x, μ(x))|`` (detached), as TD3+BC (Fujimoto & Gu
+            2021; α = 2.5 there). Defaults to ``None`` (no behaviour cloning).
+        reduction (str, optional): ``"mean"`` (default, also for ``None``), ``"sum"`` or ``"none"``. For
+            ``"squared"``, ``"none"`` gives the per-sample ``ŵ_i δ_i²``. For ``"absolute_mean"`` it gives the signed
+            per-sample ``ŵ_i δ_i`` *before* the absolute value (``|mean|`` of it is the ``"mean"`` loss), and
+            ``"sum"`` gives ``|Σ_i ŵ_i δ_i|``.
+
+    Output: ``"loss_value"``, ``"loss_actor"`` (with an actor) and detached diagnostics ``"td_error_mean"``,
+    ``"td_error_abs_mean"``, ``"q_mean"`` (mean Q(x, a)), ``"target_value_mean"``, with weights ``"weight_mean"``
+    and ``"weight_ess"`` (Kish (Σŵ)²/Σŵ²), with an actor ``"actor_q_mean"`` and, with ``bc_alpha``, ``"bc_loss"``.
+    ``forward`` writes ``δ²`` (detached, shape ``[*B, 1]``) into the input under ``"td_error"`` as DQNLoss does;
+    no other input entry is changed.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import Bounded
+        >>> from torchrl.objectives import SoftUpdate
+        >>> from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
+        >>> from torchrl_wbrm.objectives import WeightedBellmanLoss
+        >>> spec = Bounded(-1.0, 1.0, (1,))
+        >>> q = make_q_network(2, 1, num_cells=(32,))
+        >>> actor = make_deterministic_actor(2, spec, num_cells=(32,))
+        >>> loss = WeightedBellmanLoss(q, actor_network=actor, residual="squared")
+        >>> loss.make_value_estimator(gamma=0.9)
+        >>> updater = SoftUpdate(loss, tau=0.005)
+        >>> n = 16
+        >>> data = TensorDict({
+        ...     "observation": torch.randn(n, 2),
+        ...     "action": spec.rand((n,)),
+        ...     "density_ratio": torch.rand(n, 1) * 2,
+        ...     ("next", "observation"): torch.randn(n, 2),
+        ...     ("next", "reward"): torch.randn(n, 1),
+        ...     ("next", "done"): torch.zeros(n, 1, dtype=torch.bool),
+        ...     ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
+        ... }, [n])
+        >>> out = loss(data)
+        >>> sorted(k for k in out.keys() if k.startswith("loss_"))
+        ['loss_actor', 'loss_value']
+        >>> (out["loss_value"] + out["loss_actor"]).backward()
+        >>> updater.step()
+        >>> data["td_error"].shape
+        torch.Size([16, 1])
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Maintains default values for all configurable tensordict keys.
+
+        This class defines which tensordict keys can be set using '.set_keys(key_name=key_value)' and their
+        default values.
+
+        Attributes:
+            action (NestedKey): The input tensordict key where the action is expected (and where the actor writes
+                μ(x)). Defaults to ``"action"``.
+            state_action_value (NestedKey): Where a continuous-action Q network writes Q(x, a).
+                Defaults to ``"state_action_value"``.
+            action_value (NestedKey): Where a discrete Q head writes the per-action values.
+                Defaults to ``"action_value"``.
+            weight (NestedKey): The input key of the per-sample weight ŵ(x, a). Defaults to ``"density_ratio"``.
+            priority (NestedKey): The input tensordict key where δ² is written back. Defaults to ``"td_error"``.
+            reward (NestedKey): The reward key, read under ``"next"``. Defaults to ``"reward"``.
+            done (NestedKey): The done key, read under ``"next"``. Defaults to ``"done"``.
+            terminated (NestedKey): The terminated key, read under ``"next"``; no bootstrap where it is True.
+                Defaults to ``"terminated"``.
+        """
+
+        action: NestedKey = "action"
+        state_action_value: NestedKey = "state_action_value"
+        action_value: NestedKey = "action_value"
+        weight: NestedKey = "density_ratio"
+        priority: NestedKey = "td_error"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    default_value_estimator = ValueEstimators.TD0
+    SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.TD0,)
+
+    value_network: TensorDictModule
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+    actor_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        value_network: TensorDictModule,
+        *,
+        actor_network: TensorDictModule | None = None,
+        residual: str = "squared",
+        delay_value: bool = True,
+        delay_actor: bool | None = None,
+        use_weights: bool = True,
+        maximiser: str | ActionMaximiser | None = None,
+        action_spec: TensorSpec | None = None,
+        num_action_samples: int = 64,
+        weight_actor_loss: bool = False,
+        bc_alpha: float | None = None,
+        reduction: str | None = None,
+    ) -> None:
+        reduction = check_reduction(reduction)
+        if residual not in RESIDUALS:
+            raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
+        discrete = isinstance(value_network, QValueActor) or self.default_keys.action_value in getattr(
+            value_network, "out_keys", ()
+        )
+        if actor_network is None and (weight_actor_loss or bc_alpha is not None):
+            raise ValueError("weight_actor_loss and bc_alpha configure the actor loss; pass an actor_network.")
+        if bc_alpha is not None and not bc_alpha > 0:
+            raise ValueError(f"bc_alpha must be > 0 or None, got {bc_alpha!r}.")
+        self._in_keys = None
+        self._out_keys = None
+        super().__init__()
+        self.maximiser = self._make_maximiser(maximiser, discrete, actor_network, action_spec, num_action_samples)
+        self.discrete = discrete
+        self.residual = residual
+        self.delay_value = bool(delay_value)
+        self.delay_actor = self.delay_value if delay_actor is None else bool(delay_actor)
+        self.use_weights = bool(use_weights)
+        self.weight_actor_loss = bool(weight_actor_loss)
+        self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
+        self.reduction = reduction
+        self.convert_to_functional(value_network, "value_network", create_target_params=self.delay_value)
+        self.has_actor = actor_network is not None
+        if self.has_actor:
+            self.convert_to_functional(actor_network, "actor_network", create_target_params=self.delay_actor)
+
+    @staticmethod
+    def _make_maximiser(maximiser, discrete, actor_network, action_spec, num_action_samples) -> ActionMaximiser:
+        if isinstance(maximiser, ActionMaximiser):
+            return maximiser
+        if discrete:
+            if actor_network is not None:
+                raise ValueError("A discrete Q head (writing 'action_value') takes no actor_network.")
+            if maximiser not in (None, "discrete"):
+                raise ValueError(f"A discrete Q head needs maximiser='discrete' (or None), got {maximiser!r}.")
+            return GreedyDiscreteMaximiser()
+        if maximiser is None:
+            maximiser = "actor" if actor_network is not None else "sampled"
+        if maximiser == "actor":
+            if actor_network is None:
+                raise ValueError("maximiser='actor' needs an actor_network.")
+            return ActorMaximiser()
+        if maximiser == "sampled":
+            if action_spec is None:
+                action_spec = getattr(actor_network, "spec", None)
+            if isinstance(action_spec, Composite):
+                action_spec = action_spec.get(WeightedBellmanLoss.default_keys.action, None)
+            if not isinstance(action_spec, Bounded):
+                raise ValueError(
+                    "maximiser='sampled' needs a Bounded action_spec (or an actor whose spec is Bounded), "
+                    f"got {type(action_spec).__name__}."
+                )
+            return SampledActionMaximiser(action_spec, num_samples=num_action_samples)
+        raise ValueError(
+            f"maximiser must be 'discrete', 'actor', 'sampled' or an ActionMaximiser, got {maximiser!r}."
+        )
+
+    # ---------------------------------------------------------------- keys and value estimator
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        if self._value_estimator is not None:
+            self._value_estimator.set_keys(
+                value=self.tensor_keys.state_action_value,
+                reward=self.tensor_keys.reward,
+                done=self.tensor_keys.done,
+                terminated=self.tensor_keys.terminated,
+            )
+        self._in_keys = None
+
+    def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams) -> None:
+        """Builds the TD(0) target ``r + γ (1 − terminated) · next_value``; set γ here (default 0.99)."""
+        if value_type is None:
+            value_type = self.default_value_estimator
+        if isinstance(value_type, ValueEstimatorBase) or (
+            isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
+        ):
+            return LossModule.make_value_estimator(self, value_type, **hyperparams)
+        dispatch_value_estimator(
+            self,
+            value_type,
+            supported=self.SUPPORTED_VALUE_ESTIMATORS,
+            tensor_keys={
+                "value": self.tensor_keys.state_action_value,
+                "reward": self.tensor_keys.reward,
+                "done": self.tensor_keys.done,
+                "terminated": self.tensor_keys.terminated,
+            },
+            value_network=None,
+            **hyperparams,
+        )
+
+    @property
+    def _observation_keys(self) -> list[NestedKey]:
+        """The value network's inputs other than the action (the state part of (x, a))."""
+        return [key for key in self.value_network.in_keys if key != self.tensor_keys.action]
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        if self._in_keys is None:
+            keys = [
+                self.tensor_keys.action,
+                ("next", self.tensor_keys.reward),
+                ("next", self.tensor_keys.done),
+                ("next", self.tensor_keys.terminated),
+                *self.value_network.in_keys,
+                *[("next", key) for key in self._observation_keys],
+            ]
+            if self.has_actor:
+                keys += [*self.actor_network.in_keys, *[("next", key) for key in self.actor_network.in_keys]]
+            if self.use_weights:
+                keys.append(self.tensor_keys.weight)
+            self._in_keys = list(dict.fromkeys(keys))
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    @property
+    def out_keys(self) -> list[str]:
+        if self._out_keys is None:
+            keys = ["loss_value", "td_error_mean", "td_error_abs_mean", "q_mean", "target_value_mean"]
+            if self.use_weights:
+                keys += ["weight_mean", "weight_ess"]
+            if self.has_actor:
+                keys += ["loss_actor", "actor_q_mean"]
+                if self.bc_alpha is not None:
+                    keys.append("bc_loss")
+            self._out_keys = keys
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values):
+        self._out_keys = values
+
+    # ---------------------------------------------------------------- pieces
+    def _inputs(self, tensordict: TensorDictBase, keys, why: str) -> TensorDict:
+        """A new TensorDict holding ``keys`` of ``tensordict`` (so the input is never written to)."""
+        return TensorDict(
+            {key: get_entry(tensordict, key, why) for key in keys},
+            batch_size=tensordict.batch_size,
+            device=tensordict.device,
+        )
+
+    def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """ŵ per sample, shape ``[*B]`` (detached: the weights are fixed in stage 2), or ones without weights."""
+        if not self.use_weights:
+            reward = get_entry(tensordict, ("next", self.tensor_keys.reward), "the reward")
+            return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
+        key = self.tensor_keys.weight
+        weight = get_entry(
+            tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build the "
+            "loss with use_weights=False"
+        )
+        weight = per_sample(weight, tensordict.batch_size, key).detach()
+        check_sign(weight, key, strictly_positive=False)
+        return weight
+
+    def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Q(x, a) at the data's actions, shape ``[*B]``, with the online parameters (differentiable)."""
+        keys = self._observation_keys if self.discrete else self.value_network.in_keys
+        inputs = self._inputs(tensordict, keys, "an input of the value network")
+        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
+            outputs = self.value_network(inputs)
+        if not self.discrete:
+            key = self.tensor_keys.state_action_value
+            return per_sample(get_entry(outputs, key, "the value network's output"), tensordict.batch_size, key)
+        action_value = get_entry(outputs, self.tensor_keys.action_value, "the Q head's output")
+        action = get_entry(tensordict, self.tensor_keys.action, "the action taken in the data")
+        batch, num_actions = tensordict.batch_size, action_value.shape[-1]
+        if action.shape == (*batch, num_actions):  # one-hot
+            return (action_value * action.to(action_value.dtype)).sum(-1)
+        if action.shape in (batch, (*batch, 1)) and not action.is_floating_point():  # indices
+            return action_value.gather(-1, action.reshape(*batch, 1)).squeeze(-1)
+        raise ValueError(
+            f"Entry {self.tensor_keys.action!r} has shape {tuple(action.shape)} and dtype {action.dtype}; a Q head "
+            f"over {num_actions} actions expects one-hot actions {(*batch, num_actions)} or integer indices "
+            f"{tuple(batch)} / {(*batch, 1)}."
+        )
+
+    def _actor_action(self, inputs: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
+        """μ(x) with the given actor parameters."""
+        actor_inputs = self._inputs(inputs, self.actor_network.in_keys, "an input of the actor")
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            return self.actor_network(actor_inputs).get(self.tensor_keys.action)
+
+    def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad."""
+        next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
+        next_inputs = self._inputs(next_td, self._observation_keys, "a next-state input of the value network")
+        actor_action = None
+        if self.has_actor:
+            with torch.no_grad():  # the value loss never trains the actor
+                actor_action = self._actor_action(next_td, self.target_actor_network_params)
+        params = self.target_value_network_params if self.delay_value else self.value_network_params
+        with torch.no_grad() if self.delay_value else nullcontext():
+            with params.to_module(self.value_network, preserve_module_state=False):
+                return self.maximiser(
+                    self.value_network,
+                    next_inputs,
+                    action_key=self.tensor_keys.action,
+                    value_key=self.tensor_keys.action_value if self.discrete else self.tensor_keys.state_action_value,
+                    actor_action=actor_action,
+                )
+
+    # ---------------------------------------------------------------- losses
+    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted Bellman residual (:func:`weighted_bellman_residual`); returns ``(loss, diagnostics)``.
+
+        The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
+        """
+        weight = self._weight(tensordict)
+        q_value = self._chosen_q(tensordict)
+        next_value = self.next_state_value(tensordict)
+        reward = get_entry(tensordict, ("next", self.tensor_keys.reward), "the reward")
+        for key in (self.tensor_keys.done, self.tensor_keys.terminated):
+            per_sample(get_entry(tensordict, ("next", key), "episode-end flag"), tensordict.batch_size, ("next", key))
+        target_value = self.value_estimator.value_estimate(
+            tensordict.copy(), next_value=next_value.reshape(reward.shape)
+        )
+        target_value = per_sample(target_value, tensordict.batch_size, ("next", self.tensor_keys.reward))
+        loss = weighted_bellman_residual(
+            q_value,
+            target_value,
+            weight,
+            residual=self.residual,
+            reduction=self.reduction,
+        )
+        with torch.no_grad():
+            td_error = q_value - target_value
+            diagnostics = {
+                "td_error": td_error.pow(2),
+                "td_error_mean": td_error.mean(),
+                "td_error_abs_mean": td_error.abs().mean(),
+                "q_mean": q_value.mean(),
+                "target_value_mean": target_value.mean(),
+            }
+            if self.use_weights:
+                diagnostics["weight_mean"] = weight.mean()
+                diagnostics["weight_ess"] = weight.sum().pow(2) / weight.pow(2).sum()
+        return loss, diagnostics
+
+    def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``−mean_i Q(x_i, μ(x_i))`` (Q frozen), optionally ŵ-weighted and with TD3+BC's cloning term.
+
+        Only the actor receives gradients. Returns ``(loss, diagnostics)``.
+        """
+        if not self.has_actor:
+            raise ValueError("actor_loss needs an actor_network; this loss was built without one.")
+        mu = self._actor_action(tensordict, self.actor_network_params)
+        q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
+        q_inputs.set(self.tensor_keys.action, mu)
+        with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
+            q_outputs = self.value_network(q_inputs)
+        key = self.tensor_keys.state_action_value
+        q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
+        per_sample_loss = -q_actor
+        diagnostics = {"actor_q_mean": q_actor.detach().mean()}
+        if self.bc_alpha is not None:
+            action = get_entry(tensordict, self.tensor_keys.action, "the dataset action for behaviour cloning")
+            if action.shape != mu.shape:
+                raise ValueError(
+                    f"Entry {self.tensor_keys.action!r} has shape {tuple(action.shape)} but the actor writes "
+                    f"{tuple(mu.shape)}."
+                )
+            bc = (mu - action).pow(2).reshape(*tensordict.batch_size, -1).mean(-1)
+            lmbd = self.bc_alpha / q_actor.abs().mean().detach().clamp_min(1e-6)
+            per_sample_loss = lmbd * per_sample_loss + bc
+            diagnostics["bc_loss"] = bc.detach().mean()
+        if self.weight_actor_loss:
+            per_sample_loss = per_sample_loss * self._weight(tensordict)
+        return reduce_batch(per_sample_loss, self.reduction), diagnostics
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes ``"loss_value"`` (and ``"loss_actor"``) and writes δ² into ``tensordict["td_error"]``."""
+        loss_value, diagnostics = self.value_loss(tensordict)
+        td_error = diagnostics.pop("td_error")
+        tensordict.set(self.tensor_keys.priority, td_error.unsqueeze(-1))
+        out = {"loss_value": loss_value, **diagnostics}
+        if self.has_actor:
+            loss_actor, actor_diagnostics = self.actor_loss(tensordict)
+            out.update(loss_actor=loss_actor, **actor_diagnostics)
+        return TensorDict(out, batch_size=[])
