@@ -187,7 +187,7 @@ class OfflineDatasets:
         scratch_dir: str | os.PathLike | None = None,
     ) -> "OfflineDatasets":
         for name, td in zip(PARTS, (transitions, behaviour_samples, expert_samples)):
-            if td.numel() == 0:
+            if td.batch_size.numel() == 0:  # (TensorDict.numel() is 1 for an empty batch)
                 raise ValueError(f"The {name} set is empty: collect at least one {name.replace('_', ' ')} sample.")
             if td.ndim != 1:
                 raise ValueError(f"The {name} set has batch shape {tuple(td.shape)}: expected a flat set [N].")
