@@ -1,0 +1,88 @@
+"""Evaluation: confidence intervals, paired regret against the exact optimum, Q* and ratio errors."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+
+from torchrl_wbrm.envs import LQREnv
+from torchrl_wbrm.evaluation import (
+    FiniteHorizonLQRPolicy,
+    bootstrap_ci,
+    effective_sample_size,
+    evaluate_returns,
+    lqr_paired_regret,
+    mean_ci,
+    q_error,
+    ratio_error,
+)
+from torchrl_wbrm.policies import LinearGaussianPolicy, make_lqr_optimal_policy, make_mountain_car_env, make_mountain_car_expert
+
+
+def test_mean_ci_known_answer():
+    ci = mean_ci([1.0, 2.0, 3.0, 4.0, 5.0])
+    assert ci.mean == 3.0 and ci.n == 5
+    se = math.sqrt(2.5 / 5)
+    assert ci.stderr == pytest.approx(se)
+    assert ci.high - 3.0 == pytest.approx(2.7764451 * se, rel=1e-6)  # t_{0.975, 4}
+    assert math.isnan(mean_ci([1.0]).stderr)
+    with pytest.raises(ValueError, match="empty"):
+        mean_ci([])
+
+
+def test_bootstrap_is_seeded_and_covers_the_mean():
+    x = torch.randn(200, generator=torch.Generator().manual_seed(0))
+    a, b = bootstrap_ci(x, seed=1), bootstrap_ci(x, seed=1)
+    assert (a.low, a.high) == (b.low, b.high)
+    assert a.low < x.mean().item() < a.high
+    assert a.half_width == pytest.approx(1.96 * x.std().item() / math.sqrt(200), rel=0.2)
+
+
+@pytest.mark.parametrize("experiment", ["exp1", "exp3"])
+def test_paired_regret_of_known_policies(experiment):
+    env = LQREnv(experiment)
+    optimal = TensorDictModule(FiniteHorizonLQRPolicy(env), in_keys=["observation", "step_count"], out_keys=["action"])
+    res = lqr_paired_regret(experiment, optimal, episodes=2000, seed=0)
+    assert res["regret"].mean == 0.0  # the same policy on the same noise
+    assert res["optimal_return_paired"].low < res["optimal_return_exact"] < res["optimal_return_paired"].high
+    stationary = lqr_paired_regret(experiment, make_lqr_optimal_policy(env), episodes=2000, seed=0)
+    _, K = env.riccati()
+    exact_gap = env.optimal_return(clipped=False) - env.policy_return(K, clipped=False)
+    assert abs(stationary["regret"].mean - exact_gap) < 4 * stationary["regret"].stderr + 1e-5
+    assert stationary["regret"].stderr < 1e-4  # pairing: the regret is far sharper than either return
+    assert stationary["return"].stderr > 100 * stationary["regret"].stderr
+    _, K = env.riccati()
+    worse = TensorDictModule(LinearGaussianPolicy(0.7 * K, 0.0), in_keys=["observation"], out_keys=["action"])
+    res = lqr_paired_regret(experiment, worse, episodes=2000, seed=0)
+    exact_gap = env.optimal_return(clipped=False) - env.policy_return(0.7 * K, clipped=False)
+    assert res["regret"].low - 0.01 < exact_gap < res["regret"].high + 0.01 and exact_gap > 0.01
+
+
+def test_q_error_scores():
+    env = LQREnv("exp1")
+    x = torch.randn(1000, 2, dtype=torch.float64)
+    a = env.optimal_action(x) + 0.1 * torch.randn(1000, 2, dtype=torch.float64)
+    q = env.optimal_q(x, a)
+    assert q_error(q, q)["relative_spread_error"] == 0.0
+    constant = q_error(torch.full_like(q, q.mean().item()), q)
+    assert constant["relative_spread_error"] == pytest.approx(1.0, rel=0.01)  # a constant Q explains nothing
+    shifted = q_error(q + 2.0, q)
+    assert shifted["bias"] == pytest.approx(2.0) and shifted["centred_error"] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="values"):
+        q_error(q[:10], q)
+
+
+def test_ratio_error_and_ess():
+    w = torch.tensor([1.0, 1.0, 1.0, 1.0])
+    assert effective_sample_size(w) == 4.0
+    assert effective_sample_size(torch.tensor([4.0, 0.0, 0.0, 0.0])) == 1.0
+    out = ratio_error(torch.tensor([2.0, 0.0]), torch.tensor([1.0, 1.0]))
+    assert out["relative_l2"] == pytest.approx(1.0) and out["mean_behaviour"] == 1.0 and out["ess_fraction"] == 0.5
+
+
+def test_evaluate_returns_on_mountain_car():
+    env = make_mountain_car_env()
+    res = evaluate_returns(env, make_mountain_car_expert(power=0.3, tau=0.0), episodes=2, seed=0)
+    assert res.mean > 95 and res.n == 2
