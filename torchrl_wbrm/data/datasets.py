@@ -77,6 +77,7 @@ def collect_transitions(
         seed: seeds the env (``collector.set_seed(seed)``) and torch's global generator (the policies' noise)
             with a *different* seed: an env generator and torch's generator seeded alike draw the same
             numbers, which would correlate the action noise with the initial state and the transition noise.
+            The global generator's state is restored afterwards.
         episode_offset: added to the episode ids.
     """
     if total_frames <= 0:
@@ -86,19 +87,21 @@ def collect_transitions(
         frames_per_batch = min(total_frames, n_envs * 1000)
     frames_per_batch = max(n_envs, (frames_per_batch // n_envs) * n_envs)
     total = math.ceil(total_frames / frames_per_batch) * frames_per_batch
-    if seed is not None:
-        torch.manual_seed(seed + POLICY_SEED_OFFSET)
-    collector = Collector(
-        env, policy, frames_per_batch=frames_per_batch, total_frames=total, auto_register_policy_transforms=False
-    )
-    if seed is not None:
-        collector.set_seed(seed)
     batches = []
-    try:
-        for batch in collector:
-            batches.append(batch.reshape(-1).clone())  # the collector reuses its buffers
-    finally:
-        collector.shutdown(close_env=False)
+    # a seeded collection runs on a forked global generator: it neither depends on nor disturbs the caller's state
+    with torch.random.fork_rng(enabled=seed is not None):
+        if seed is not None:
+            torch.manual_seed(seed + POLICY_SEED_OFFSET)
+        collector = Collector(
+            env, policy, frames_per_batch=frames_per_batch, total_frames=total, auto_register_policy_transforms=False
+        )
+        if seed is not None:
+            collector.set_seed(seed)
+        try:
+            for batch in collector:
+                batches.append(batch.reshape(-1).clone())  # the collector reuses its buffers
+        finally:
+            collector.shutdown(close_env=False)
     data = torch.cat(batches, 0)[:total_frames]
     episode = data.get(("collector", "traj_ids")).clone()
     data = data.exclude("collector")

@@ -1,1 +1,29 @@
+"""The two-stage trainer, structured configs, logging, checkpoints and plots (used by every recipe)."""
+from torchrl_wbrm.training.config import (
+    EvalConfig,
+    LoggerConfig,
+    MakeDatasetConfig,
+    QConfig,
+    RatioConfig,
+    WBRMConfig,
+    register_configs,
+    validate_config,
+)
+from torchrl_wbrm.training.trainer import WBRMTrainer, get_rng_state, set_rng_state, set_seed
+from torchrl_wbrm.training.weights import shape_weights
 
+__all__ = [
+    "EvalConfig",
+    "LoggerConfig",
+    "MakeDatasetConfig",
+    "QConfig",
+    "RatioConfig",
+    "WBRMConfig",
+    "WBRMTrainer",
+    "get_rng_state",
+    "register_configs",
+    "set_rng_state",
+    "set_seed",
+    "shape_weights",
+    "validate_config",
+]

@@ -1,17 +1,182 @@
 """Structured (dataclass) Hydra configs of the recipes: a misspelt key or a bad type fails at start.
 
 ``register_configs()`` stores the schemas in Hydra's ``ConfigStore``; the YAML files under ``configs/`` name
-them first in their defaults list, so every value they set is checked against the schema.
+them first in their defaults list, so every value they set is checked against the schema. Values are checked
+again by :func:`validate_config` (allowed names, ranges), which names the setting and what is allowed.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import List, Optional
 
 from hydra.core.config_store import ConfigStore
 
 from torchrl_wbrm.data import EnvConfig
 
-__all__ = ["MakeDatasetConfig", "register_configs"]
+__all__ = [
+    "EvalConfig",
+    "LoggerConfig",
+    "MakeDatasetConfig",
+    "QConfig",
+    "RatioConfig",
+    "WBRMConfig",
+    "register_configs",
+    "validate_config",
+]
+
+
+@dataclass
+class RatioConfig:
+    """Stage 1: the density ratio ŵ ≈ dP^e/dP^b (Section 3, "Density Ratio Estimation").
+
+    Attributes:
+        source: ``"learned"`` (fit ŵ with the Basu loss), ``"true"`` (the exact LQR ratio, a reference) or
+            ``"none"`` (w ≡ 1: the unweighted Bellman residual, the ablation).
+        divergence: ``"basu"`` (power divergence with ``alpha``) or ``"kl"`` (its α → 0 limit).
+        alpha: Basu's α (paper: 0.5; 1 is uLSIF).
+        bounds: ``[Φ, Ψ]`` of Assumption 4.1, enforced by the network's output parameterisation.
+        parameterisation: the bounded output map of :class:`~torchrl_wbrm.modules.DensityRatioNetwork`.
+        num_cells: hidden widths.
+        steps, batch_size, lr, weight_decay: the optimiser's budget (Adam).
+        grad_clip: max gradient norm (``None``: off).
+        holdout_fraction: share of S^b and S^e held out for early stopping.
+        eval_every: steps between held-out evaluations; ``patience``: evaluations without improvement before
+            stopping (the best held-out state is kept).
+        normalisation_coefficient: weight of the penalty (mean_b ŵ − 1)².
+        non_negative_correction: D3RE's C (``None``: off).
+        relative_beta: β of the relative ratio p_e / (β p_e + (1 − β) p_b) (0: the plain ratio).
+        self_normalise: divide the stored weights by their mean over D, so that they average 1.
+        temper: λ in ŵ^λ (1: off).
+        clip: upper clip of the stored weights (``None``: off).
+        mix: ε in (1 − ε) ŵ + ε (0: off).
+    """
+
+    source: str = "learned"
+    divergence: str = "basu"
+    alpha: float = 0.5
+    bounds: List[float] = field(default_factory=lambda: [1e-3, 1e3])
+    parameterisation: str = "soft_clamp"
+    num_cells: List[int] = field(default_factory=lambda: [128, 128])
+    steps: int = 1500
+    batch_size: int = 512
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    grad_clip: Optional[float] = 10.0
+    holdout_fraction: float = 0.1
+    eval_every: int = 100
+    patience: int = 5
+    normalisation_coefficient: float = 0.0
+    non_negative_correction: Optional[float] = None
+    relative_beta: float = 0.0
+    self_normalise: bool = True
+    temper: float = 1.0
+    clip: Optional[float] = None
+    mix: float = 0.0
+
+
+@dataclass
+class QConfig:
+    """Stage 2: Q (and the actor) by the weighted Bellman residual (Section 3).
+
+    Attributes:
+        residual: ``"squared"`` (mean ŵ δ²) or ``"absolute_mean"`` (the paper's |mean ŵ δ|).
+        bootstrap: ``"target"`` (a frozen target network updated by SoftUpdate) or ``"residual_gradient"``
+            (gradients through both Q terms).
+        maximiser: ``"actor"`` (max ≈ Q(x', μ(x'))) or ``"sampled"`` (uniform candidates plus μ(x')).
+        num_action_samples: candidates for ``"sampled"``.
+        gamma: discount (``None``: the env's, 0.9 for LQR; 0.99 for MountainCar).
+        num_cells, actor_num_cells: hidden widths.
+        steps, batch_size, lr, actor_lr: the optimisers' budget (Adam).
+        target_tau: SoftUpdate's τ.
+        actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
+        weight_actor_loss: weight the actor's objective by ŵ too.
+        bc_alpha: coefficient of a TD3+BC behaviour-cloning term (``None``: off; the paper has none).
+        grad_clip: max gradient norm (``None``: off).
+        init_bias: start Q's output bias at mean(r) / (1 − γ) (DESIGN.md: otherwise the offset takes thousands of
+            steps).
+        eval_every: steps between evaluations.
+    """
+
+    residual: str = "squared"
+    bootstrap: str = "target"
+    maximiser: str = "actor"
+    num_action_samples: int = 64
+    gamma: Optional[float] = None
+    num_cells: List[int] = field(default_factory=lambda: [256, 256])
+    actor_num_cells: List[int] = field(default_factory=lambda: [256, 256])
+    steps: int = 3000
+    batch_size: int = 256
+    lr: float = 3e-4
+    actor_lr: float = 3e-4
+    target_tau: float = 0.005
+    actor_delay: int = 2
+    weight_actor_loss: bool = False
+    bc_alpha: Optional[float] = None
+    grad_clip: Optional[float] = None
+    init_bias: bool = True
+    eval_every: int = 500
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation, always on fresh episodes with its own seeds.
+
+    Attributes:
+        episodes: final evaluation episodes (LQR: parallel episodes for the paired regret, ≥ 1000; MountainCar: 100).
+        train_episodes: episodes of the periodic evaluations during training.
+        seed: evaluation seed (distinct from the data seed).
+        q_samples: expert (and behaviour) state-actions for the Q* and ratio errors (LQR).
+    """
+
+    episodes: int = 1000
+    train_episodes: int = 500
+    seed: int = 1_000_000
+    q_samples: int = 10_000
+
+
+@dataclass
+class LoggerConfig:
+    """Logging through ``torchrl.record.loggers.get_logger``.
+
+    Attributes:
+        backend: ``"csv"`` (default), ``"wandb"`` or ``""`` (none).
+        project: wandb project.
+        mode: wandb mode, ``"offline"`` unless a user asks for ``"online"``.
+        log_every: training steps between scalar logs.
+    """
+
+    backend: str = "csv"
+    project: str = "torchrl_wbrm"
+    mode: str = "offline"
+    log_every: int = 50
+
+
+@dataclass
+class WBRMConfig:
+    """``recipes/wbrm_offline.py``: the two-stage offline recipe.
+
+    Attributes:
+        env: the environment and its data (group ``env``).
+        ratio: stage 1. q: stage 2. eval: evaluation. logger: logging (group ``logger``).
+        seed: seeds data, initialisation and sampling.
+        device: torch device.
+        threads: torch threads (``None``: torch's default).
+        checkpoint_every: steps between checkpoints (0: only at the end of each stage).
+        resume: a run directory to resume from (``None``: a new run).
+        plots: write PNG plots.
+    """
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    ratio: RatioConfig = field(default_factory=RatioConfig)
+    q: QConfig = field(default_factory=QConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    seed: int = 0
+    device: str = "cpu"
+    threads: Optional[int] = None
+    checkpoint_every: int = 1000
+    resume: Optional[str] = None
+    plots: bool = True
 
 
 @dataclass
@@ -31,7 +196,57 @@ class MakeDatasetConfig:
     storage: str = "lazy"
 
 
+_CHOICES = {
+    "ratio.source": ("learned", "true", "none"),
+    "ratio.divergence": ("basu", "kl"),
+    "q.residual": ("squared", "absolute_mean"),
+    "q.bootstrap": ("target", "residual_gradient"),
+    "q.maximiser": ("actor", "sampled"),
+    "logger.backend": ("csv", "wandb", ""),
+    "logger.mode": ("offline", "online", "disabled"),
+}
+
+
+def _get(cfg, dotted: str):
+    for part in dotted.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def validate_config(cfg) -> None:
+    """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting."""
+    for key, allowed in _CHOICES.items():
+        value = _get(cfg, key)
+        if value not in allowed:
+            raise ValueError(f"{key}={value!r} is not allowed: choose one of {list(allowed)}.")
+    positive = ["ratio.steps", "ratio.batch_size", "ratio.lr", "q.steps", "q.batch_size", "q.lr", "q.actor_lr",
+                "eval.episodes", "eval.train_episodes", "q.eval_every", "ratio.eval_every", "q.actor_delay",
+                "logger.log_every"]
+    for key in positive:
+        if not _get(cfg, key) > 0:
+            raise ValueError(f"{key} must be > 0, got {_get(cfg, key)!r}.")
+    if not 0.0 < cfg.ratio.holdout_fraction < 1.0:
+        raise ValueError(f"ratio.holdout_fraction must lie in (0, 1), got {cfg.ratio.holdout_fraction}.")
+    if cfg.ratio.divergence == "basu" and not cfg.ratio.alpha > 0:
+        raise ValueError(f"ratio.alpha must be > 0 (use ratio.divergence=kl for the limit), got {cfg.ratio.alpha}.")
+    low, high = cfg.ratio.bounds
+    if not 0 < low < 1 <= high:
+        raise ValueError(f"ratio.bounds=[Φ, Ψ] needs 0 < Φ < 1 ≤ Ψ (Assumption 4.1), got {list(cfg.ratio.bounds)}.")
+    if not 0 < cfg.ratio.temper <= 1:
+        raise ValueError(f"ratio.temper (λ in ŵ^λ) must lie in (0, 1], got {cfg.ratio.temper}.")
+    if not 0 <= cfg.ratio.mix <= 1:
+        raise ValueError(f"ratio.mix must lie in [0, 1], got {cfg.ratio.mix}.")
+    if cfg.ratio.clip is not None and not cfg.ratio.clip > 0:
+        raise ValueError(f"ratio.clip must be > 0 or null, got {cfg.ratio.clip}.")
+    if cfg.q.gamma is not None and not 0 < cfg.q.gamma < 1:
+        raise ValueError(f"q.gamma must lie in (0, 1) or be null, got {cfg.q.gamma}.")
+    if not 0 < cfg.q.target_tau <= 1:
+        raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
+    if cfg.ratio.source == "true" and cfg.env.kind != "lqr":
+        raise ValueError(f"ratio.source='true' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
+
+
 def register_configs() -> None:
     cs = ConfigStore.instance()
+    cs.store(name="base_wbrm_offline", node=WBRMConfig)
     cs.store(name="base_make_dataset", node=MakeDatasetConfig)
-    cs.store(group="env", name="base_env", node=EnvConfig)

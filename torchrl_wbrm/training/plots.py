@@ -1,0 +1,73 @@
+"""PNG plots like the paper's figures: the training curve, and evaluation returns against the exact optimum."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+__all__ = ["plot_run"]
+
+
+def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = "") -> list[Path]:
+    """Write ``training_curve.png`` and ``evaluation.png`` from a trainer's history; returns their paths.
+
+    The reference line is the exact optimum (LQR, ``optimal_return_exact``), never the paper's 87.84, which is the
+    reward cap; for MountainCar there is no exact optimum and no line is drawn.
+    """
+    run_dir = Path(run_dir)
+    paths = []
+    train = [r for r in history if r["stage"] == "q_train"]
+    evals = [r for r in history if r["stage"] == "q"]
+    ratio = [r for r in history if r["stage"] == "ratio"]
+
+    fig, axes = plt.subplots(1, 3 if ratio else 2, figsize=(13 if ratio else 9, 3.6))
+    if train:
+        steps = [r["step"] for r in train]
+        axes[0].plot(steps, [r["loss_value"] for r in train])
+        axes[0].set_yscale("log")
+        axes[0].set_title("stage 2: weighted Bellman residual")
+        axes[0].set_xlabel("step")
+        axes[1].plot(steps, [r.get("q_mean", float("nan")) for r in train], label="mean Q̂ on batch")
+        if evals and "q_star_mean_behaviour" in evals[-1]:
+            axes[1].axhline(evals[-1]["q_star_mean_behaviour"], color="k", ls="--", label="mean Q* on behaviour data")
+        axes[1].set_title("mean Q")
+        axes[1].set_xlabel("step")
+        axes[1].legend(fontsize=8)
+    if ratio:
+        axes[2].plot([r["step"] for r in ratio], [r["held_out_loss"] for r in ratio])
+        axes[2].set_title("stage 1: held-out ratio loss")
+        axes[2].set_xlabel("step")
+    fig.suptitle(title)
+    fig.tight_layout()
+    paths.append(run_dir / "training_curve.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    if evals:
+        fig, axes = plt.subplots(1, 2 if "regret" in evals[-1] else 1, figsize=(10 if "regret" in evals[-1] else 5.5, 3.6), squeeze=False)
+        steps = [r["step"] for r in evals]
+        ret = [r["return"] for r in evals]
+        ci = [r.get("return_ci", 0.0) for r in evals]
+        ax = axes[0, 0]
+        ax.errorbar(steps, ret, yerr=ci, marker="o", capsize=3, label="greedy policy (95% CI)")
+        if "optimal_return_exact" in evals[-1]:
+            ax.axhline(evals[-1]["optimal_return_exact"], color="k", ls="--", label="exact optimum")
+        ax.set_xlabel("step")
+        ax.set_ylabel("evaluation return")
+        ax.legend(fontsize=8)
+        if "regret" in evals[-1]:
+            ax = axes[0, 1]
+            ax.errorbar(steps, [r["regret"] for r in evals], yerr=[r["regret_ci"] for r in evals], marker="o", capsize=3)
+            ax.set_yscale("symlog", linthresh=1e-3)
+            ax.set_xlabel("step")
+            ax.set_ylabel("paired regret vs exact optimum")
+        fig.suptitle(title)
+        fig.tight_layout()
+        paths.append(run_dir / "evaluation.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths

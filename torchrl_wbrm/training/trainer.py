@@ -1,0 +1,490 @@
+"""The two-stage WBRM trainer used by every recipe.
+
+Stage 1 fits ŵ with :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` on S^b and S^e, with a held-out split
+for early stopping; ŵ is then computed *once* over D and stored in D's replay buffer under ``"density_ratio"``
+(optionally shaped and self-normalised), never recomputed per batch. Stage 2 trains Q (and the actor) with
+:class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's ``SoftUpdate`` and periodic evaluation.
+
+Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
+evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
+history; ``WBRMTrainer(cfg, run_dir, resume=True)`` continues from it and ends bit-identical to an uninterrupted run.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import random
+import time
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded
+from torchrl.objectives import SoftUpdate
+from tqdm.auto import tqdm
+
+from torchrl_wbrm.data import OfflineDatasets, collect_transitions, make_offline_datasets, make_replay_buffer
+from torchrl_wbrm.data.datasets import PairedSampler
+from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
+from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
+from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
+from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
+from torchrl_wbrm.policies import (
+    lqr_true_density_ratio,
+    make_lqr_behaviour,
+    make_lqr_expert,
+    make_mountain_car_env,
+)
+from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.weights import shape_weights
+
+__all__ = ["WBRMTrainer", "set_seed", "get_rng_state", "set_rng_state"]
+
+CHECKPOINT = "checkpoint.pt"
+
+
+def set_seed(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def get_rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def _to_config(cfg) -> WBRMConfig:
+    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict (merged on the schema, so unknown keys fail)."""
+    if isinstance(cfg, WBRMConfig):
+        cfg = OmegaConf.structured(cfg)
+    elif not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
+
+
+def _split(td: TensorDictBase, fraction: float, generator: torch.Generator):
+    perm = torch.randperm(td.shape[0], generator=generator)
+    n_hold = max(1, int(round(fraction * td.shape[0])))
+    return td[perm[n_hold:]], td[perm[:n_hold]]
+
+
+class WBRMTrainer:
+    """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
+
+    Args:
+        cfg: a :class:`WBRMConfig` (or a Hydra ``DictConfig`` of one).
+        run_dir: where checkpoints, ``results.json`` and plots go.
+
+    Keyword Args:
+        logger: a torchrl ``Logger`` (or ``None``).
+        resume: continue from ``run_dir/checkpoint.pt``.
+        progress: show tqdm bars.
+    """
+
+    def __init__(self, cfg, run_dir: str | os.PathLike, *, logger=None, resume: bool = False, progress: bool = True):
+        self.cfg: WBRMConfig = _to_config(cfg)
+        validate_config(self.cfg)
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.logger = logger
+        self.progress = progress
+        self.device = torch.device(self.cfg.device)
+        if self.cfg.threads:
+            torch.set_num_threads(self.cfg.threads)
+        set_seed(self.cfg.seed)
+        self.history: list[dict] = []
+        self.state = {"stage": "ratio", "step": 0}
+        self._setup_data()
+        self._setup_ratio()
+        self._setup_q()
+        self._setup_evaluation()
+        if resume:
+            self._load_checkpoint()
+
+    # ------------------------------------------------------------------ setup
+    @property
+    def is_lqr(self) -> bool:
+        return self.cfg.env.kind == "lqr"
+
+    def _setup_data(self) -> None:
+        t0 = time.perf_counter()
+        self.datasets: OfflineDatasets = make_offline_datasets(self.cfg.env, seed=self.cfg.seed)
+        self.data_seconds = time.perf_counter() - t0
+        d = self.datasets.transitions[:]
+        self.observation_dim = d["observation"].shape[-1]
+        self.action_dim = d["action"].shape[-1]
+        if self.is_lqr:
+            self.lqr_config: LQRConfig = self.cfg.env.lqr
+            self.lqr_env = LQREnv(self.lqr_config)
+            bound = self.lqr_config.action_bound
+            self.action_spec = Bounded(-bound, bound, (self.action_dim,))
+            self.gamma = self.cfg.q.gamma or self.lqr_config.gamma
+        else:
+            self.action_spec = Bounded(-1.0, 1.0, (self.action_dim,))
+            self.gamma = self.cfg.q.gamma or 0.99
+        # a fingerprint to refuse resuming on different data
+        self.data_fingerprint = float(d["observation"][:100].double().sum() + d["action"][:100].double().sum())
+
+    def _setup_ratio(self) -> None:
+        rc = self.cfg.ratio
+        self.ratio_network = None
+        if rc.source != "learned":
+            return
+        self.ratio_network = DensityRatioNetwork(
+            self.observation_dim,
+            self.action_dim,
+            bounds=tuple(rc.bounds),
+            parameterisation=rc.parameterisation,
+            num_cells=rc.num_cells,
+        ).to(self.device)
+        self.ratio_loss = RobustDensityRatioLoss(
+            self.ratio_network,
+            alpha="kl" if rc.divergence == "kl" else rc.alpha,
+            normalisation_coefficient=rc.normalisation_coefficient,
+            non_negative_correction=rc.non_negative_correction,
+            relative_beta=rc.relative_beta,
+        )
+        self.ratio_optim = torch.optim.Adam(self.ratio_loss.parameters(), lr=rc.lr, weight_decay=rc.weight_decay)
+        gen = torch.Generator().manual_seed(self.cfg.seed + 17)
+        b_train, b_hold = _split(self.datasets.behaviour_samples[:], rc.holdout_fraction, gen)
+        e_train, e_hold = _split(self.datasets.expert_samples[:], rc.holdout_fraction, gen)
+        self.ratio_sampler = PairedSampler(make_replay_buffer(b_train), make_replay_buffer(e_train), rc.batch_size)
+        keys = ("observation", "action")
+        self.ratio_holdout = TensorDict(
+            {"behaviour": b_hold.select(*keys), "expert": e_hold.select(*keys)}, batch_size=[]
+        )
+        self.ratio_best = {"loss": math.inf, "state": copy.deepcopy(self.ratio_network.state_dict()), "bad": 0}
+
+    def _setup_q(self) -> None:
+        qc = self.cfg.q
+        d = self.datasets.transitions[:]
+        init_bias = d["next", "reward"].mean().item() / (1 - self.gamma) if qc.init_bias else 0.0
+        self.value_network = make_q_network(
+            self.observation_dim, self.action_dim, num_cells=qc.num_cells, initial_bias=init_bias
+        ).to(self.device)
+        self.actor = make_deterministic_actor(self.observation_dim, self.action_spec, num_cells=qc.actor_num_cells).to(
+            self.device
+        )
+        self.q_loss = WeightedBellmanLoss(
+            self.value_network,
+            actor_network=self.actor,
+            residual=qc.residual,
+            delay_value=qc.bootstrap == "target",
+            use_weights=self.cfg.ratio.source != "none",
+            maximiser=qc.maximiser,
+            action_spec=self.action_spec,
+            num_action_samples=qc.num_action_samples,
+            weight_actor_loss=qc.weight_actor_loss,
+            bc_alpha=qc.bc_alpha,
+        )
+        self.q_loss.make_value_estimator(gamma=self.gamma)
+        self.target_updater = SoftUpdate(self.q_loss, tau=qc.target_tau) if qc.bootstrap == "target" else None
+        self.value_optim = torch.optim.Adam(self.q_loss.value_network_params.values(True, True), lr=qc.lr)
+        self.actor_optim = torch.optim.Adam(self.q_loss.actor_network_params.values(True, True), lr=qc.actor_lr)
+        self.q_buffer = None  # built after stage 1, with the weights in it
+
+    def _setup_evaluation(self) -> None:
+        ec = self.cfg.eval
+        self.true_ratio = None
+        self.eval_samples = {}
+        if self.is_lqr:
+            env = make_lqr_env(self.lqr_config, batch_size=[min(ec.q_samples, 10_000)], seed=ec.seed + 1)
+            data_cfg = self.cfg.env.lqr_data
+            expert = make_lqr_expert(env, tau=data_cfg.expert_tau)
+            behaviour = make_lqr_behaviour(
+                env, gain_scale=data_cfg.behaviour_gain_scale, noise_std=data_cfg.behaviour_noise_std
+            )
+            n = math.ceil(ec.q_samples / env.batch_size[0] / self.lqr_config.horizon) * env.batch_size[0] * self.lqr_config.horizon
+            for name, policy, seed in (("expert", expert, ec.seed + 2), ("behaviour", behaviour, ec.seed + 3)):
+                self.eval_samples[name] = collect_transitions(env, policy, n, seed=seed)[: ec.q_samples].select(
+                    "observation", "action"
+                )
+            self.true_ratio = lqr_true_density_ratio(env, expert, behaviour)
+        else:
+            self.mc_env = make_mountain_car_env()
+
+    # ------------------------------------------------------------------ the shared loop
+    def _run_stage(
+        self,
+        name: str,
+        total_steps: int,
+        step_fn: Callable[[int], dict],
+        *,
+        eval_every: int,
+        eval_fn: Callable[[int], bool | None],
+        until: int | None = None,
+    ) -> bool:
+        """Run ``step_fn`` from the checkpointed step to ``total_steps``; returns ``False`` if stopped by ``until``.
+
+        Every ``logger.log_every`` steps the step's figures are logged; every ``eval_every`` steps ``eval_fn`` runs
+        (it returns ``True`` to stop early); every ``checkpoint_every`` steps a checkpoint is written.
+        """
+        start = self.state["step"]
+        stop = total_steps if until is None else min(total_steps, until)
+        log_every, ckpt_every = self.cfg.logger.log_every, self.cfg.checkpoint_every
+        bar = tqdm(total=total_steps, initial=start, desc=name, disable=not self.progress, dynamic_ncols=True)
+        running: dict[str, float] = {}
+        finished_early = False
+        try:
+            for step in range(start + 1, stop + 1):
+                figures = step_fn(step)
+                self.state["step"] = step
+                if step % log_every == 0 or step == stop:
+                    running = {k: float(v) for k, v in figures.items()}
+                    self._log({f"{name}/{k}": v for k, v in running.items()}, step)
+                    self.history.append({"stage": f"{name}_train", "step": step, **running})
+                    bar.set_postfix({k: f"{v:.4g}" for k, v in list(running.items())[:4]})
+                if step % eval_every == 0 or step == total_steps:
+                    if eval_fn(step):
+                        finished_early = True
+                if ckpt_every and step % ckpt_every == 0 and step != stop:
+                    self.save_checkpoint()
+                bar.update(1)
+                if finished_early:
+                    break
+        finally:
+            bar.close()
+        return finished_early or self.state["step"] >= total_steps
+
+    def _log(self, scalars: dict[str, float], step: int) -> None:
+        if self.logger is not None:
+            for k, v in scalars.items():
+                if v is not None and math.isfinite(v):
+                    self.logger.log_scalar(k, v, step=step)
+
+    # ------------------------------------------------------------------ stage 1
+    def _ratio_step(self, step: int) -> dict:
+        batch = self.ratio_sampler.sample().to(self.device)
+        out = self.ratio_loss(batch)
+        loss = out["loss_density_ratio"]
+        self.ratio_optim.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.cfg.ratio.grad_clip:
+            torch.nn.utils.clip_grad_norm_(self.ratio_loss.parameters(), self.cfg.ratio.grad_clip)
+        self.ratio_optim.step()
+        return {k: v.detach() for k, v in out.items() if v.ndim == 0}
+
+    @torch.no_grad()
+    def _ratio_eval(self, step: int) -> bool:
+        out = self.ratio_loss(self.ratio_holdout.to(self.device))
+        held_out = out["loss_density_ratio"].item()
+        best = self.ratio_best
+        if held_out < best["loss"] - 1e-6:
+            best.update(loss=held_out, state=copy.deepcopy(self.ratio_network.state_dict()), bad=0, step=step)
+        else:
+            best["bad"] += 1
+        record = {"stage": "ratio", "step": step, "held_out_loss": held_out}
+        record.update(self._ratio_truth_figures())
+        self.history.append(record)
+        self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
+        return best["bad"] >= self.cfg.ratio.patience
+
+    @torch.no_grad()
+    def _ratio_truth_figures(self) -> dict:
+        if self.true_ratio is None or self.ratio_network is None:
+            return {}
+        b = self.eval_samples["behaviour"].to(self.device)
+        w_hat = self.ratio_network(b.clone())["density_ratio"]
+        w = self.true_ratio(b.clone())["density_ratio"]
+        return {f"ratio_{k}": v for k, v in ratio_error(w_hat, w).items()}
+
+    # ------------------------------------------------------------------ weights over D
+    @torch.no_grad()
+    def _build_q_buffer(self) -> None:
+        d = self.datasets.transitions[:].clone()
+        source = self.cfg.ratio.source
+        if source == "learned":
+            w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
+                           for chunk in d.split(8192)]).cpu()
+        elif source == "true":
+            w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
+        else:
+            w = torch.ones(d.shape[0], 1)
+        rc = self.cfg.ratio
+        w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
+        d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
+        self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
+        self.weight_stats = ratio_error(w) if source != "none" else {"mean_behaviour": 1.0, "ess": float(d.shape[0]), "ess_fraction": 1.0, "max": 1.0}
+
+    # ------------------------------------------------------------------ stage 2
+    def _q_step(self, step: int) -> dict:
+        batch = self.q_buffer.sample().to(self.device)
+        loss_value, figures = self.q_loss.value_loss(batch)
+        self.value_optim.zero_grad(set_to_none=True)
+        loss_value.backward()
+        if self.cfg.q.grad_clip:
+            torch.nn.utils.clip_grad_norm_(self.q_loss.value_network_params.values(True, True), self.cfg.q.grad_clip)
+        self.value_optim.step()
+        out = {"loss_value": loss_value.detach()}
+        out.update({k: v for k, v in figures.items() if v.ndim == 0})
+        if step % self.cfg.q.actor_delay == 0:
+            loss_actor, actor_figures = self.q_loss.actor_loss(batch)
+            self.actor_optim.zero_grad(set_to_none=True)
+            loss_actor.backward()
+            self.actor_optim.step()
+            out["loss_actor"] = loss_actor.detach()
+            if self.target_updater is not None:
+                self.target_updater.step()
+        return out
+
+    def _q_eval(self, step: int) -> None:
+        final = step == self.cfg.q.steps
+        record = {"stage": "q", "step": step, **self.evaluate(final=final)}
+        self.history.append(record)
+        self._log({f"eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
+        return None
+
+    @torch.no_grad()
+    def evaluate(self, *, final: bool = False) -> dict:
+        """Evaluate the current actor and Q: flat dict of floats (LQR: regret, return, Q* error, ratio)."""
+        ec = self.cfg.eval
+        episodes = ec.episodes if final else ec.train_episodes
+        out: dict = {}
+        self.actor.eval()
+        if self.is_lqr:
+            res = lqr_paired_regret(self.lqr_config, self.actor, episodes=episodes, seed=ec.seed)
+            for key in ("return", "regret", "optimal_return_paired"):
+                out[f"{key}"] = res[key].mean
+                out[f"{key}_ci"] = res[key].half_width
+                out[f"{key}_stderr"] = res[key].stderr
+            out["optimal_return_exact"] = res["optimal_return_exact"]
+            for name, samples in self.eval_samples.items():
+                s = samples.to(self.device)
+                q_hat = self.value_network(s.clone())["state_action_value"].cpu()
+                q_star = self.lqr_env.optimal_q(samples["observation"].double(), samples["action"].double())
+                errs = q_error(q_hat, q_star)
+                out[f"q_error_{name}"] = errs["relative_spread_error"]
+                out[f"q_bias_{name}"] = errs["bias"]
+                out[f"q_mean_{name}"] = q_hat.double().mean().item()
+                out[f"q_star_mean_{name}"] = errs["q_true_mean"]
+        else:
+            res = evaluate_returns(self.mc_env, self.actor, episodes=episodes, seed=ec.seed)
+            out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
+        self.actor.train()
+        return out
+
+    # ------------------------------------------------------------------ run
+    def run(self, *, until: int | None = None) -> dict | None:
+        """Run (or continue) both stages. ``until``: stop stage 2 after this step (for interruption tests).
+
+        Returns the results dict (also written to ``results.json``), or ``None`` when stopped by ``until``.
+        """
+        if self.state["stage"] == "ratio":
+            if self.cfg.ratio.source == "learned":
+                self._run_stage(
+                    "ratio", self.cfg.ratio.steps, self._ratio_step,
+                    eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval,
+                )
+                self.ratio_network.load_state_dict(self.ratio_best["state"])
+            self.state = {"stage": "q", "step": 0}
+            self._build_q_buffer()
+            self.save_checkpoint()
+        if self.q_buffer is None:
+            self._build_q_buffer()
+        if self.state["stage"] == "q":
+            done = self._run_stage(
+                "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
+            )
+            self.save_checkpoint()
+            if not done:
+                return None
+            self.state = {"stage": "done", "step": self.cfg.q.steps}
+            self.save_checkpoint()
+        return self.results()
+
+    def results(self) -> dict:
+        final = [r for r in self.history if r["stage"] == "q"]
+        if self.cfg.plots:
+            from torchrl_wbrm.training.plots import plot_run
+
+            plot_run(self.history, self.run_dir, title=f"{self.cfg.env.name}, seed {self.cfg.seed}")
+        ratio_records = [r for r in self.history if r["stage"] == "ratio"]
+        results = {
+            "env": self.cfg.env.name,
+            "seed": self.cfg.seed,
+            "final": final[-1] if final else {},
+            "weights": self.weight_stats,
+            "ratio": {
+                "source": self.cfg.ratio.source,
+                "best_held_out_loss": self.ratio_best["loss"] if self.ratio_network is not None else None,
+                "best_step": self.ratio_best.get("step") if self.ratio_network is not None else None,
+                "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
+                **({k: v for k, v in ratio_records[-1].items() if k.startswith("ratio_")} if ratio_records else {}),
+            },
+            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
+            "data_seconds": self.data_seconds,
+            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+        }
+        if self.ratio_network is not None and ratio_records:
+            best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
+            if best:
+                results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
+        (self.run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
+        (self.run_dir / "history.json").write_text(json.dumps(self.history, indent=2, default=float))
+        return results
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        sd = {
+            "state": dict(self.state),
+            "history": copy.deepcopy(self.history),
+            "rng": get_rng_state(),
+            "q_loss": self.q_loss.state_dict(),
+            "value_optim": self.value_optim.state_dict(),
+            "actor_optim": self.actor_optim.state_dict(),
+            "data_fingerprint": self.data_fingerprint,
+            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+        }
+        if self.ratio_network is not None:
+            sd.update(
+                ratio_loss=self.ratio_loss.state_dict(),
+                ratio_optim=self.ratio_optim.state_dict(),
+                ratio_best=copy.deepcopy(self.ratio_best),
+            )
+        return sd
+
+    def save_checkpoint(self) -> Path:
+        path = self.run_dir / CHECKPOINT
+        tmp = path.with_suffix(".tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+        return path
+
+    def _load_checkpoint(self) -> None:
+        path = self.run_dir / CHECKPOINT
+        if not path.is_file():
+            raise FileNotFoundError(f"Cannot resume: no {CHECKPOINT} in {self.run_dir}.")
+        sd = torch.load(path, weights_only=False)
+        if abs(sd["data_fingerprint"] - self.data_fingerprint) > 1e-6:
+            raise ValueError(
+                f"Cannot resume from {path}: its data differ from this config's (env or seed changed?)."
+            )
+        saved = dict(sd["config"])
+        now = OmegaConf.to_container(OmegaConf.structured(self.cfg))
+        for section in ("env", "ratio"):
+            if saved.get(section) != now.get(section):
+                raise ValueError(f"Cannot resume from {path}: its '{section}' settings differ from this config's.")
+        self.state = sd["state"]
+        self.history = sd["history"]
+        self.q_loss.load_state_dict(sd["q_loss"])
+        self.value_optim.load_state_dict(sd["value_optim"])
+        self.actor_optim.load_state_dict(sd["actor_optim"])
+        if self.ratio_network is not None:
+            self.ratio_loss.load_state_dict(sd["ratio_loss"])
+            self.ratio_optim.load_state_dict(sd["ratio_optim"])
+            self.ratio_best = sd["ratio_best"]
+        if self.state["stage"] != "ratio":
+            self._build_q_buffer()
+        set_rng_state(sd["rng"])
