@@ -106,9 +106,9 @@ class QConfig:
     actor_num_cells: List[int] = field(default_factory=lambda: [256, 256])
     steps: int = 3000
     batch_size: int = 256
-    lr: float = 3e-4
-    actor_lr: float = 3e-4
-    target_tau: float = 0.005
+    lr: float = 1e-3
+    actor_lr: float = 1e-3
+    target_tau: float = 0.05
     actor_delay: int = 2
     weight_actor_loss: bool = False
     bc_alpha: Optional[float] = None
