@@ -23,7 +23,7 @@ def make_logger(logger_cfg, run_dir: str | os.PathLike, experiment_name: str, co
         logger = get_logger("csv", logger_name=str(run_dir / "logs"), experiment_name=experiment_name)
     elif backend == "wandb":
         os.environ.setdefault("WANDB_SILENT", "true")
-        kwargs = {"project": logger_cfg.project, "save_dir": str(run_dir), "config": config or {}}
+        kwargs = {"project": logger_cfg.project, "config": config or {}}
         if logger_cfg.mode == "offline":
             kwargs["offline"] = True
         else:

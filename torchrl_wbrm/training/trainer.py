@@ -393,6 +393,8 @@ class WBRMTrainer:
             self.save_checkpoint()
         if self.q_buffer is None:
             self._build_q_buffer()
+        if self.state["stage"] == "done" and self.state["step"] < self.cfg.q.steps:
+            self.state["stage"] = "q"  # resumed with a larger budget: continue training
         if self.state["stage"] == "q":
             done = self._run_stage(
                 "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until

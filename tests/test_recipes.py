@@ -1,0 +1,117 @@
+"""Recipe smoke tests: each runs in a subprocess with tiny overrides, as a user would launch it."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY_LQR = [
+    "env.lqr_data.behaviour_episodes=40",
+    "env.lqr_data.expert_episodes=20",
+    "env.lqr_data.parallel_envs=20",
+    "ratio.steps=20",
+    "ratio.eval_every=10",
+    "ratio.num_cells=[16,16]",
+    "q.steps=20",
+    "q.eval_every=10",
+    "q.num_cells=[16,16]",
+    "q.actor_num_cells=[16,16]",
+    "eval.episodes=50",
+    "eval.train_episodes=20",
+    "eval.q_samples=400",
+]
+TINY_MC = [
+    "env.mountain_car_data.expert_transitions=300",
+    "env.mountain_car_data.behaviour_transitions=1200",
+    "ratio.steps=10",
+    "ratio.eval_every=5",
+    "ratio.batch_size=64",
+    "q.steps=10",
+    "q.eval_every=10",
+    "q.num_cells=[16,16]",
+    "q.actor_num_cells=[16,16]",
+    "eval.episodes=1",
+    "eval.train_episodes=1",
+]
+
+
+def run_recipe(script: str, *overrides: str, check: bool = True) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "offline", "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / script), *overrides],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{script} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+@pytest.mark.parametrize("env_name", ["lqr_exp1", "lqr_exp2", "lqr_exp3"])
+def test_wbrm_offline_lqr(tmp_path, env_name):
+    proc = run_recipe("wbrm_offline.py", f"env={env_name}", *TINY_LQR, f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["env"] == env_name
+    assert {"regret", "regret_ci", "q_error_expert", "return"} <= results["final"].keys()
+    assert "paired regret" in proc.stdout
+    for name in ("training_curve.png", "evaluation.png", "checkpoint.pt", "history.json"):
+        assert (tmp_path / name).is_file(), name
+    assert any((tmp_path / "logs").rglob("*.csv"))  # the default csv logger
+
+
+def test_wbrm_offline_mountain_car(tmp_path):
+    run_recipe("wbrm_offline.py", "env=mountain_car", *TINY_MC, f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["env"] == "mountain_car"
+    assert "return" in results["final"] and "regret" not in results["final"]
+
+
+def test_wbrm_offline_wandb_offline(tmp_path):
+    run_recipe("wbrm_offline.py", "logger=wandb", *TINY_LQR, f"hydra.run.dir={tmp_path}")
+    assert any((tmp_path / "wandb").glob("offline-run-*")), list(tmp_path.iterdir())
+
+
+def test_wbrm_offline_resume_continues_exactly(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=30", "checkpoint_every=10", f"hydra.run.dir={a}", "plots=false")
+    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=20", "checkpoint_every=10", f"hydra.run.dir={b}", "plots=false")
+    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=30", "checkpoint_every=10", f"resume={b}", "plots=false")
+    ca = torch.load(a / "checkpoint.pt", weights_only=False)["q_loss"]
+    cb = torch.load(b / "checkpoint.pt", weights_only=False)["q_loss"]
+    assert all(torch.equal(ca[k], cb[k]) for k in ca)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("q.residual=cubed", "q.residual='cubed' is not allowed"),
+        ("q.stepz=3", "stepz"),
+        ("env=lqr_exp9", "lqr_exp9"),
+    ],
+)
+def test_wbrm_offline_config_errors(tmp_path, override, message):
+    proc = run_recipe("wbrm_offline.py", override, f"hydra.run.dir={tmp_path}", check=False)
+    assert proc.returncode != 0
+    assert message in proc.stdout + proc.stderr
+
+
+def test_make_dataset(tmp_path):
+    proc = run_recipe(
+        "make_dataset.py",
+        "env.lqr_data.behaviour_episodes=20",
+        "env.lqr_data.expert_episodes=10",
+        f"out={tmp_path / 'ds'}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
+    assert "S^e (expert state-actions for the ratio): 200" in proc.stdout
+    assert (tmp_path / "ds" / "metadata.json").is_file()
