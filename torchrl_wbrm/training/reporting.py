@@ -1,7 +1,7 @@
 """Human-readable summaries of a run's results."""
 from __future__ import annotations
 
-__all__ = ["summarise"]
+__all__ = ["summarise", "load_results", "results_table"]
 
 
 def summarise(results: dict) -> str:
@@ -29,4 +29,56 @@ def summarise(results: dict) -> str:
         )
     if "wall_seconds" in results:
         lines.append(f"wall time {results['wall_seconds']:.1f} s (data {results.get('data_seconds', 0):.1f} s)")
+    return "\n".join(lines)
+
+
+def load_results(root) -> list[dict]:
+    """Every ``results.json`` under ``root`` (a Hydra multirun directory, or any tree of run directories)."""
+    import json
+    from pathlib import Path
+
+    records = []
+    for path in sorted(Path(root).rglob("results.json")):
+        records.append(json.loads(path.read_text()))
+    if not records:
+        raise FileNotFoundError(f"No results.json under {root}: did the runs finish?")
+    return records
+
+
+def _lookup(record: dict, dotted: str):
+    node = record
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def results_table(records: list[dict], group_by: list[str], metrics: dict[str, str], *, digits: int = 4) -> str:
+    """A Markdown table: one row per distinct value of ``group_by`` (config paths), ``mean ± 95% CI`` over seeds.
+
+    ``metrics`` maps a column title to a dotted path in the results (e.g. ``{"regret": "final.regret"}``). The CI is
+    Student-t over the runs of a row (the seeds), so it states how much the figure moves from seed to seed.
+    """
+    from torchrl_wbrm.evaluation.stats import mean_ci
+
+    rows: dict[tuple, list[dict]] = {}
+    for rec in records:
+        key = tuple(_lookup(rec, "config." + g) if not g.startswith("=") else _lookup(rec, g[1:]) for g in group_by)
+        rows.setdefault(key, []).append(rec)
+    header = [g.lstrip("=") for g in group_by] + ["seeds"] + list(metrics)
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
+        recs = rows[key]
+        cells = [str(k) for k in key] + [str(len(recs))]
+        for path in metrics.values():
+            values = [v for v in (_lookup(r, path) for r in recs) if isinstance(v, (int, float))]
+            if not values:
+                cells.append("–")
+            elif len(values) == 1:
+                cells.append(f"{values[0]:.{digits}f}")
+            else:
+                ci = mean_ci(values)
+                cells.append(f"{ci.mean:.{digits}f} ± {ci.half_width:.{digits}f}")
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
