@@ -234,7 +234,8 @@ class WBRMTrainer:
         start = self.state["step"]
         stop = total_steps if until is None else min(total_steps, until)
         log_every, ckpt_every = self.cfg.logger.log_every, self.cfg.checkpoint_every
-        bar = tqdm(total=total_steps, initial=start, desc=name, disable=not self.progress, dynamic_ncols=True)
+        # disable=None: a bar on a terminal, none in a log file (sweeps)
+        bar = tqdm(total=total_steps, initial=start, desc=name, disable=None if self.progress else True, mininterval=0.5)
         running: dict[str, float] = {}
         finished_early = False
         try:
