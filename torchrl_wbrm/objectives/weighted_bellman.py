@@ -27,6 +27,11 @@ __all__ = ["RESIDUALS", "WeightedBellmanLoss", "weighted_bellman_residual"]
 RESIDUALS = ("squared", "absolute_mean")
 
 
+def _next(key: NestedKey) -> tuple:
+    """``key`` under ``"next"``, flattened: ``("next", "a", "b")`` rather than ``("next", ("a", "b"))``."""
+    return ("next", *key) if isinstance(key, tuple) else ("next", key)
+
+
 def weighted_bellman_residual(
     q_value: torch.Tensor,
     target_value: torch.Tensor,
@@ -328,14 +333,14 @@ class WeightedBellmanLoss(LossModule):
         if self._in_keys is None:
             keys = [
                 self.tensor_keys.action,
-                ("next", self.tensor_keys.reward),
-                ("next", self.tensor_keys.done),
-                ("next", self.tensor_keys.terminated),
+                _next(self.tensor_keys.reward),
+                _next(self.tensor_keys.done),
+                _next(self.tensor_keys.terminated),
                 *self.value_network.in_keys,
-                *[("next", key) for key in self._observation_keys],
+                *[_next(key) for key in self._observation_keys],
             ]
             if self.has_actor:
-                keys += [*self.actor_network.in_keys, *[("next", key) for key in self.actor_network.in_keys]]
+                keys += [*self.actor_network.in_keys, *[_next(key) for key in self.actor_network.in_keys]]
             if self.use_weights:
                 keys.append(self.tensor_keys.weight)
             self._in_keys = list(dict.fromkeys(keys))
@@ -374,7 +379,7 @@ class WeightedBellmanLoss(LossModule):
     def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
         """ŵ per sample, shape ``[*B]`` (detached: the weights are fixed in stage 2), or ones without weights."""
         if not self.use_weights:
-            reward = get_entry(tensordict, ("next", self.tensor_keys.reward), "the reward")
+            reward = get_entry(tensordict, _next(self.tensor_keys.reward), "the reward")
             return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
         key = self.tensor_keys.weight
         weight = get_entry(
@@ -438,16 +443,17 @@ class WeightedBellmanLoss(LossModule):
 
         The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
         """
+        for key, why in ((self.tensor_keys.reward, "the reward"), (self.tensor_keys.done, "episode-end flag"),
+                         (self.tensor_keys.terminated, "episode-end flag; no bootstrap where it is True")):
+            per_sample(get_entry(tensordict, _next(key), why), tensordict.batch_size, _next(key))
+        reward = tensordict.get(_next(self.tensor_keys.reward))
         weight = self._weight(tensordict)
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
-        reward = get_entry(tensordict, ("next", self.tensor_keys.reward), "the reward")
-        for key in (self.tensor_keys.done, self.tensor_keys.terminated):
-            per_sample(get_entry(tensordict, ("next", key), "episode-end flag"), tensordict.batch_size, ("next", key))
         target_value = self.value_estimator.value_estimate(
             tensordict.copy(), next_value=next_value.reshape(reward.shape)
         )
-        target_value = per_sample(target_value, tensordict.batch_size, ("next", self.tensor_keys.reward))
+        target_value = per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
         loss = weighted_bellman_residual(
             q_value,
             target_value,
