@@ -92,10 +92,12 @@ def test_run_writes_results_with_truth_scores(finished_run):
 def test_weights_are_computed_once_and_self_normalised(finished_run):
     trainer, _, _ = finished_run
     stored = trainer.q_buffer[:]["density_ratio"]
-    assert stored.shape == (trainer.datasets.sizes()["transitions"], 1)
+    n_train, n_holdout = trainer.q_train_data.shape[0], trainer.q_holdout.shape[0]
+    assert stored.shape == (n_train, 1) and n_train + n_holdout == trainer.datasets.sizes()["transitions"]
+    assert set(trainer.q_train_data["episode"].tolist()).isdisjoint(trainer.q_holdout["episode"].tolist())
     assert stored.mean().item() == pytest.approx(1.0, rel=1e-4)
     with torch.no_grad():
-        w = trainer.ratio_network(trainer.datasets.transitions[:].select("observation", "action"))["density_ratio"]
+        w = trainer.ratio_network(trainer.q_train_data.select("observation", "action"))["density_ratio"]
     torch.testing.assert_close(stored, w / w.mean(), rtol=1e-4, atol=1e-6)
     batch = trainer.q_buffer.sample()
     assert "density_ratio" in batch.keys()
@@ -155,3 +157,24 @@ def test_resume_refuses_other_data(tmp_path):
         WBRMTrainer(tiny_config(seed=1), tmp_path, progress=False, resume=True)
     with pytest.raises(FileNotFoundError, match="checkpoint"):
         WBRMTrainer(tiny_config(), tmp_path / "empty", progress=False, resume=True)
+
+
+def test_held_out_bellman_residual_is_reported(finished_run):
+    trainer, results, _ = finished_run
+    assert results["final"]["held_out_bellman_residual"] > 0
+
+
+def test_relative_true_ratio_is_bounded_by_one_over_beta(tmp_path):
+    trainer = WBRMTrainer(tiny_config(ratio={"source": "true", "relative_beta": 0.5, "self_normalise": False}), tmp_path, progress=False)
+    trainer.run()
+    w = trainer.q_buffer[:]["density_ratio"]
+    assert w.max().item() <= 2.0 + 1e-6 and w.min().item() >= 0
+
+
+def test_behaviour_cloning_reference(tmp_path):
+    trainer = WBRMTrainer(tiny_config(algo="bc", q={"steps": 200, "eval_every": 200}), tmp_path, progress=False)
+    results = trainer.run()
+    assert trainer.ratio_network is None and results["algo"] == "bc"
+    assert "q_error_expert" not in results["final"]
+    # 200 steps of cloning a linear expert already give a small regret on exp1
+    assert results["final"]["regret"] < 0.5

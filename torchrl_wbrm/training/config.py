@@ -55,7 +55,7 @@ class RatioConfig:
     divergence: str = "basu"
     alpha: float = 0.5
     bounds: List[float] = field(default_factory=lambda: [1e-3, 1e3])
-    parameterisation: str = "soft_clamp"
+    parameterisation: str = "softplus"
     num_cells: List[int] = field(default_factory=lambda: [128, 128])
     steps: int = 1500
     batch_size: int = 512
@@ -92,6 +92,8 @@ class QConfig:
         weight_actor_loss: weight the actor's objective by ŵ too.
         bc_alpha: coefficient of a TD3+BC behaviour-cloning term (``None``: off; the paper has none).
         grad_clip: max gradient norm (``None``: off).
+        holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
+            (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (DESIGN.md: otherwise the offset takes thousands of
             steps).
         eval_every: steps between evaluations.
@@ -114,6 +116,7 @@ class QConfig:
     bc_alpha: Optional[float] = None
     grad_clip: Optional[float] = None
     init_bias: bool = True
+    holdout_fraction: float = 0.1
     eval_every: int = 500
 
 
@@ -157,6 +160,8 @@ class WBRMConfig:
 
     Attributes:
         env: the environment and its data (group ``env``).
+        algo: ``"wbrm"`` (the two stages) or ``"bc"`` (behaviour cloning of the expert's actions in S^e with
+            torchrl's ``BCLoss``, a reference: on LQR the expert is the optimum plus small noise).
         ratio: stage 1. q: stage 2. eval: evaluation. logger: logging (group ``logger``).
         seed: seeds data, initialisation and sampling.
         device: torch device.
@@ -167,6 +172,7 @@ class WBRMConfig:
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
+    algo: str = "wbrm"
     ratio: RatioConfig = field(default_factory=RatioConfig)
     q: QConfig = field(default_factory=QConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -197,6 +203,7 @@ class MakeDatasetConfig:
 
 
 _CHOICES = {
+    "algo": ("wbrm", "bc"),
     "ratio.source": ("learned", "true", "none"),
     "ratio.divergence": ("basu", "kl"),
     "q.residual": ("squared", "absolute_mean"),
@@ -225,6 +232,8 @@ def validate_config(cfg) -> None:
     for key in positive:
         if not _get(cfg, key) > 0:
             raise ValueError(f"{key} must be > 0, got {_get(cfg, key)!r}.")
+    if not 0.0 < cfg.q.holdout_fraction < 1.0:
+        raise ValueError(f"q.holdout_fraction must lie in (0, 1), got {cfg.q.holdout_fraction}.")
     if not 0.0 < cfg.ratio.holdout_fraction < 1.0:
         raise ValueError(f"ratio.holdout_fraction must lie in (0, 1), got {cfg.ratio.holdout_fraction}.")
     if cfg.ratio.divergence == "basu" and not cfg.ratio.alpha > 0:

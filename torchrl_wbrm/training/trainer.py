@@ -26,11 +26,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
-from torchrl.objectives import SoftUpdate
+from torchrl.objectives import BCLoss, SoftUpdate
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, collect_transitions, make_offline_datasets, make_replay_buffer
-from torchrl_wbrm.data.datasets import PairedSampler
+from torchrl_wbrm.data.datasets import PairedSampler, split_by_episode
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
 from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
@@ -123,6 +123,8 @@ class WBRMTrainer:
         self.datasets: OfflineDatasets = make_offline_datasets(self.cfg.env, seed=self.cfg.seed)
         self.data_seconds = time.perf_counter() - t0
         d = self.datasets.transitions[:]
+        gen = torch.Generator().manual_seed(self.cfg.seed + 23)
+        self.q_train_data, self.q_holdout = split_by_episode(d, self.cfg.q.holdout_fraction, generator=gen)
         self.observation_dim = d["observation"].shape[-1]
         self.action_dim = d["action"].shape[-1]
         if self.is_lqr:
@@ -140,7 +142,7 @@ class WBRMTrainer:
     def _setup_ratio(self) -> None:
         rc = self.cfg.ratio
         self.ratio_network = None
-        if rc.source != "learned":
+        if rc.source != "learned" or self.cfg.algo != "wbrm":
             return
         self.ratio_network = DensityRatioNetwork(
             self.observation_dim,
@@ -194,6 +196,7 @@ class WBRMTrainer:
         self.value_optim = torch.optim.Adam(self.q_loss.value_network_params.values(True, True), lr=qc.lr)
         self.actor_optim = torch.optim.Adam(self.q_loss.actor_network_params.values(True, True), lr=qc.actor_lr)
         self.q_buffer = None  # built after stage 1, with the weights in it
+        self.bc_loss = BCLoss(self.actor, loss_function="l2") if self.cfg.algo == "bc" else None
 
     def _setup_evaluation(self) -> None:
         ec = self.cfg.eval
@@ -304,20 +307,28 @@ class WBRMTrainer:
     # ------------------------------------------------------------------ weights over D
     @torch.no_grad()
     def _build_q_buffer(self) -> None:
-        d = self.datasets.transitions[:].clone()
+        if self.cfg.algo == "bc":
+            self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
+            self.weight_stats = {}
+            return
+        d = self.q_train_data.clone()
         source = self.cfg.ratio.source
         if source == "learned":
             w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
                            for chunk in d.split(8192)]).cpu()
         elif source == "true":
             w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
+            beta = self.cfg.ratio.relative_beta
+            if beta:  # the relative ratio p_e / (beta p_e + (1 - beta) p_b) of the true ratio
+                w = w / (beta * w + 1 - beta)
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
         w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
         d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
-        self.weight_stats = ratio_error(w) if source != "none" else {"mean_behaviour": 1.0, "ess": float(d.shape[0]), "ess_fraction": 1.0, "max": 1.0}
+        self.weight_stats = ratio_error(w)
+        self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
@@ -340,6 +351,14 @@ class WBRMTrainer:
                 self.target_updater.step()
         return out
 
+    def _bc_step(self, step: int) -> dict:
+        batch = self.q_buffer.sample().to(self.device)
+        loss = self.bc_loss(batch)["loss_bc"]
+        self.actor_optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.actor_optim.step()
+        return {"loss_bc": loss.detach()}
+
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
         record = {"stage": "q", "step": step, **self.evaluate(final=final)}
@@ -349,7 +368,14 @@ class WBRMTrainer:
 
     @torch.no_grad()
     def evaluate(self, *, final: bool = False) -> dict:
-        """Evaluate the current actor and Q: flat dict of floats (LQR: regret, return, Q* error, ratio)."""
+        """Evaluate the current actor and Q: flat dict of floats (LQR: regret, return, Q* error, ratio).
+
+        Runs on a forked global generator, so evaluating never changes what training draws next.
+        """
+        with torch.random.fork_rng():
+            return self._evaluate(final=final)
+
+    def _evaluate(self, *, final: bool) -> dict:
         ec = self.cfg.eval
         episodes = ec.episodes if final else ec.train_episodes
         out: dict = {}
@@ -361,7 +387,7 @@ class WBRMTrainer:
                 out[f"{key}_ci"] = res[key].half_width
                 out[f"{key}_stderr"] = res[key].stderr
             out["optimal_return_exact"] = res["optimal_return_exact"]
-            for name, samples in self.eval_samples.items():
+            for name, samples in self.eval_samples.items() if self.cfg.algo == "wbrm" else ():
                 s = samples.to(self.device)
                 q_hat = self.value_network(s.clone())["state_action_value"].cpu()
                 q_star = self.lqr_env.optimal_q(samples["observation"].double(), samples["action"].double())
@@ -373,6 +399,10 @@ class WBRMTrainer:
         else:
             res = evaluate_returns(self.mc_env, self.actor, episodes=episodes, seed=ec.seed)
             out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
+        if self.cfg.algo == "wbrm":
+            held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
+            _, figures = self.q_loss.value_loss(held_out.to(self.device))
+            out["held_out_bellman_residual"] = figures["td_error"].mean().item()  # unweighted mean δ², any residual form
         self.actor.train()
         return out
 
@@ -383,7 +413,7 @@ class WBRMTrainer:
         Returns the results dict (also written to ``results.json``), or ``None`` when stopped by ``until``.
         """
         if self.state["stage"] == "ratio":
-            if self.cfg.ratio.source == "learned":
+            if self.ratio_network is not None:
                 self._run_stage(
                     "ratio", self.cfg.ratio.steps, self._ratio_step,
                     eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval,
@@ -397,8 +427,9 @@ class WBRMTrainer:
         if self.state["stage"] == "done" and self.state["step"] < self.cfg.q.steps:
             self.state["stage"] = "q"  # resumed with a larger budget: continue training
         if self.state["stage"] == "q":
+            step_fn = self._bc_step if self.cfg.algo == "bc" else self._q_step
             done = self._run_stage(
-                "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
+                "q", self.cfg.q.steps, step_fn, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
             )
             self.save_checkpoint()
             if not done:
@@ -416,6 +447,7 @@ class WBRMTrainer:
         ratio_records = [r for r in self.history if r["stage"] == "ratio"]
         results = {
             "env": self.cfg.env.name,
+            "algo": self.cfg.algo,
             "seed": self.cfg.seed,
             "final": final[-1] if final else {},
             "weights": self.weight_stats,
