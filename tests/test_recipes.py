@@ -115,3 +115,15 @@ def test_make_dataset(tmp_path):
     )
     assert "S^e (expert state-actions for the ratio): 200" in proc.stdout
     assert (tmp_path / "ds" / "metadata.json").is_file()
+
+
+def test_weighting_study_quick(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "weighting_study.py"), "--quick", "--jobs", "1", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    tables = (tmp_path / "tables.md").read_text()
+    assert "unweighted" in tables and "learned ŵ (paper)" in tables and "select" in tables
+    assert (tmp_path / "weighting_study.png").is_file()

@@ -1,0 +1,243 @@
+"""Does weighting the Bellman residual by the density ratio help? The study, against the exact LQR optimum.
+
+    python recipes/weighting_study.py              # the full study (about 40 minutes on 2 cores)
+    python recipes/weighting_study.py --quick      # a smoke version (seconds; CI runs it)
+
+Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
+one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
+resumes. Outputs in ``--out``: one run directory per cell and seed, ``tables.md`` (mean ± 95% CI over seeds) and
+``weighting_study.png``.
+
+Blocks:
+- ``weighting`` (LQR exp1-3): unweighted vs the paper's learned ratio vs the true ratio, the ratio stabilisers
+  (bound Ψ, the relative ratio), weight shaping (tempering, clipping, a floor by mixing), behaviour cloning on top,
+  and behaviour cloning of the expert alone as a reference row;
+- ``regimes`` (LQR exp1): where the expert's data should carry information the behaviour data lacks: a noisier or
+  poorer expert, a noisier behaviour policy, a behaviour policy far from the expert, little behaviour data, and a
+  small Q network;
+- ``mountain_car``: unweighted vs learned ratio, with and without a behaviour-cloning term.
+
+Defaults are chosen without the ground truth: among the learned-ratio configurations, the one with the lowest
+held-out Bellman residual on unseen behaviour episodes (``select`` in tables.md); the exact optimum only scores.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+STUDY_BUDGET = [
+    "ratio.steps=1000",
+    "q.steps=2000",
+    "q.eval_every=2000",
+    "eval.episodes=1000",
+    "eval.q_samples=5000",
+    "logger=none",
+    "plots=false",
+    "checkpoint_every=0",
+]
+QUICK_BUDGET = [
+    "env.lqr_data.behaviour_episodes=60",
+    "env.lqr_data.expert_episodes=30",
+    "env.lqr_data.parallel_envs=30",
+    "ratio.steps=20",
+    "ratio.eval_every=10",
+    "q.steps=20",
+    "q.eval_every=20",
+    "q.num_cells=[16,16]",
+    "q.actor_num_cells=[16,16]",
+    "eval.episodes=50",
+    "eval.q_samples=300",
+    "logger=none",
+    "plots=false",
+    "checkpoint_every=0",
+]
+
+WEIGHTING = {
+    "unweighted": ["ratio.source=none"],
+    "learned ŵ (paper)": ["ratio.source=learned"],
+    "true w": ["ratio.source=true"],
+    "learned ŵ, Ψ=20": ["ratio.source=learned", "ratio.bounds=[0.001,20.0]"],
+    "learned relative ŵ, β=½": ["ratio.source=learned", "ratio.relative_beta=0.5"],
+    "learned ŵ^0.25": ["ratio.source=learned", "ratio.temper=0.25"],
+    "learned min(ŵ, 10)": ["ratio.source=learned", "ratio.clip=10.0"],
+    "learned ½ + ½ŵ": ["ratio.source=learned", "ratio.mix=0.5"],
+    "true ½ + ½w": ["ratio.source=true", "ratio.mix=0.5"],
+    "unweighted + BC": ["ratio.source=none", "q.bc_alpha=2.5"],
+    "learned ŵ + BC": ["ratio.source=learned", "q.bc_alpha=2.5"],
+    "BC of the expert alone": ["algo=bc"],
+}
+REGIME_METHODS = ["unweighted", "learned ŵ (paper)", "true w", "learned ½ + ½ŵ"]
+REGIMES = {
+    "expert τ=0.2": ["env.lqr_data.expert_tau=0.2"],
+    "expert τ=0.5 (poor)": ["env.lqr_data.expert_tau=0.5"],
+    "behaviour noise 1.0": ["env.lqr_data.behaviour_noise_std=1.0"],
+    "behaviour far (gain 0)": ["env.lqr_data.behaviour_gain_scale=0.0"],
+    "little behaviour data (200 episodes)": ["env.lqr_data.behaviour_episodes=200"],
+    "small Q (1×16)": ["q.num_cells=[16]"],
+}
+MOUNTAIN_CAR = {
+    "unweighted": ["ratio.source=none"],
+    "learned ŵ (paper)": ["ratio.source=learned"],
+    "unweighted + BC": ["ratio.source=none", "q.bc_alpha=2.5"],
+    "learned ŵ + BC": ["ratio.source=learned", "q.bc_alpha=2.5"],
+}
+
+
+def build_cells(quick: bool) -> list[dict]:
+    cells = []
+    envs = ["lqr_exp1"] if quick else ["lqr_exp1", "lqr_exp2", "lqr_exp3"]
+    methods = ["unweighted", "learned ŵ (paper)", "learned ½ + ½ŵ"] if quick else list(WEIGHTING)
+    for env in envs:
+        for method in methods:
+            cells.append({"block": "weighting", "env": env, "setting": "paper data", "method": method,
+                          "overrides": [f"env={env}", *WEIGHTING[method]]})
+    if not quick:
+        for regime, extra in REGIMES.items():
+            for method in REGIME_METHODS:
+                cells.append({"block": "regimes", "env": "lqr_exp1", "setting": regime, "method": method,
+                              "overrides": ["env=lqr_exp1", *extra, *WEIGHTING[method]]})
+        for method, extra in MOUNTAIN_CAR.items():
+            cells.append({"block": "mountain_car", "env": "mountain_car", "setting": "paper data", "method": method,
+                          "overrides": ["env=mountain_car", "eval.train_episodes=5", "eval.episodes=100", *extra]})
+    return cells
+
+
+def cell_dir(out: Path, cell: dict, seed: int) -> Path:
+    name = f"{cell['block']}/{cell['env']}/{cell['setting']}/{cell['method']}".replace(" ", "_")
+    return out / name / f"seed{seed}"
+
+
+def run_one(cell: dict, seed: int, budget: list[str], out: str) -> str:
+    """Run one (cell, seed) in this process with one torch thread; skip it if its results exist."""
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_wbrm.training import WBRMTrainer, register_configs
+
+    torch.set_num_threads(1)
+    run_dir = cell_dir(Path(out), cell, seed)
+    if (run_dir / "results.json").is_file():
+        return str(run_dir)
+    register_configs()
+    config_dir = str(Path(__file__).resolve().parents[1] / "configs")
+    with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+        cfg = compose("wbrm_offline", overrides=[*budget, *cell["overrides"], f"seed={seed}", "threads=1"])
+    trainer = WBRMTrainer(cfg, run_dir, progress=False)
+    results = trainer.run()
+    results["study"] = {k: cell[k] for k in ("block", "env", "setting", "method")}
+    (run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
+    return str(run_dir)
+
+
+def tables(out: Path) -> str:
+    from torchrl_wbrm.training.reporting import load_results, results_table
+
+    records = load_results(out)
+    lqr = {
+        "paired regret": "final.regret",
+        "Q̂ error / spread (expert)": "final.q_error_expert",
+        "Q̂ bias (expert)": "final.q_bias_expert",
+        "ESS of weights (of ~18k)": "weights.ess",
+        "held-out Bellman residual": "final.held_out_bellman_residual",
+    }
+    parts = []
+    for block, title in (("weighting", "Weighting on the paper's data"), ("regimes", "Regimes (LQR exp1)"),
+                         ("mountain_car", "MountainCarContinuous-v0")):
+        recs = [r for r in records if r.get("study", {}).get("block") == block]
+        if not recs:
+            continue
+        metrics = lqr if block != "mountain_car" else {"return (100 episodes)": "final.return",
+                                                       "ESS of weights": "weights.ess"}
+        parts.append(f"### {title}\n\n" + results_table(recs, ["=study.env", "=study.setting", "=study.method"], metrics))
+    parts.append("### select: the lowest held-out Bellman residual among learned-ratio configurations\n\n" + select(records))
+    return "\n\n".join(parts)
+
+
+def select(records: list[dict]) -> str:
+    """Per env, the learned-ratio method with the lowest mean held-out Bellman residual (no ground truth used)."""
+    import numpy as np
+
+    lines = ["| env | selected | its held-out residual | its paired regret | unweighted regret |", "|---|---|---|---|---|"]
+    by_env: dict = {}
+    for r in records:
+        s = r.get("study", {})
+        if s.get("block") != "weighting" or s.get("env") == "mountain_car":
+            continue
+        by_env.setdefault(s["env"], {}).setdefault(s["method"], []).append(r)
+    for env, methods in sorted(by_env.items()):
+        def mean(method, key):
+            return float(np.mean([r["final"][key] for r in methods[method]]))
+
+        learned = [m for m in methods if m.startswith("learned")]
+        if not learned:
+            continue
+        best = min(learned, key=lambda m: mean(m, "held_out_bellman_residual"))
+        unweighted = f"{mean('unweighted', 'regret'):.4f}" if "unweighted" in methods else "–"
+        lines.append(f"| {env} | {best} | {mean(best, 'held_out_bellman_residual'):.5f} | {mean(best, 'regret'):.4f} | {unweighted} |")
+    return "\n".join(lines)
+
+
+def plot(out: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.reporting import load_results
+
+    records = [r for r in load_results(out) if r.get("study", {}).get("block") == "weighting"]
+    envs = sorted({r["study"]["env"] for r in records})
+    fig, axes = plt.subplots(1, len(envs), figsize=(5 * len(envs), 4.5), sharey=True, squeeze=False)
+    methods = list(dict.fromkeys(r["study"]["method"] for r in records))
+    for ax, env in zip(axes[0], envs):
+        for i, method in enumerate(methods):
+            vals = [r["final"]["regret"] for r in records if r["study"]["env"] == env and r["study"]["method"] == method]
+            if not vals:
+                continue
+            ci = mean_ci(vals)
+            err = 0 if len(vals) < 2 else ci.half_width
+            ax.errorbar([max(ci.mean, 1e-4)], [i], xerr=[[min(err, ci.mean - 1e-4 if ci.mean > 1e-4 else 0)], [err]],
+                        fmt="o", capsize=3)
+        ax.set_xscale("log")
+        ax.set_title(f"{env}: paired regret (mean ± 95% CI)")
+        ax.set_yticks(range(len(methods)), methods)
+        ax.axvline(0.01, color="grey", ls=":", label="goal 0.01")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "weighting_study.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, 3 methods, 1 seed")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="results/weighting_study")
+    args = parser.parse_args()
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    out = Path(args.out)
+    cells = build_cells(args.quick)
+    seeds = range(1 if args.quick else args.seeds)
+    budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
+    jobs = [(cell, seed) for cell in cells for seed in seeds]
+    print(f"{len(jobs)} runs ({len(cells)} cells x {len(seeds)} seeds) into {out}")
+    from joblib import Parallel, delayed
+    from tqdm.auto import tqdm
+
+    runner = Parallel(n_jobs=args.jobs, return_as="generator_unordered")
+    for _ in tqdm(runner(delayed(run_one)(cell, seed, budget, str(out)) for cell, seed in jobs), total=len(jobs)):
+        pass
+    text = tables(out)
+    (out / "tables.md").write_text(text + "\n")
+    plot(out)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
