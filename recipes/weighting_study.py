@@ -57,18 +57,18 @@ QUICK_BUDGET = [
 WEIGHTING = {
     "unweighted": ["ratio.source=none"],
     "learned ŵ (paper)": ["ratio.source=learned"],
-    "true w": ["ratio.source=true"],
+    "exact w": ["ratio.source=exact"],
     "learned ŵ, Ψ=20": ["ratio.source=learned", "ratio.bounds=[0.001,20.0]"],
     "learned relative ŵ, β=½": ["ratio.source=learned", "ratio.relative_beta=0.5"],
     "learned ŵ^0.25": ["ratio.source=learned", "ratio.temper=0.25"],
     "learned min(ŵ, 10)": ["ratio.source=learned", "ratio.clip=10.0"],
     "learned ½ + ½ŵ": ["ratio.source=learned", "ratio.mix=0.5"],
-    "true ½ + ½w": ["ratio.source=true", "ratio.mix=0.5"],
+    "exact ½ + ½w": ["ratio.source=exact", "ratio.mix=0.5"],
     "unweighted + BC": ["ratio.source=none", "q.bc_alpha=2.5"],
     "learned ŵ + BC": ["ratio.source=learned", "q.bc_alpha=2.5"],
     "BC of the expert alone": ["algo=bc"],
 }
-REGIME_METHODS = ["unweighted", "learned ŵ (paper)", "true w", "learned ½ + ½ŵ"]
+REGIME_METHODS = ["unweighted", "learned ŵ (paper)", "exact w", "learned ½ + ½ŵ"]
 REGIMES = {
     "expert τ=0.2": ["env.lqr_data.expert_tau=0.2"],
     "expert τ=0.5 (poor)": ["env.lqr_data.expert_tau=0.5"],

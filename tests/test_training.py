@@ -49,7 +49,7 @@ def test_shape_weights_known_answers():
         ({"ratio": {"bounds": [2.0, 10.0]}}, "ratio.bounds"),
         ({"ratio": {"temper": 1.5}}, "ratio.temper"),
         ({"q": {"steps": 0}}, "q.steps must be > 0"),
-        ({"env": {"kind": "mountain_car"}, "ratio": {"source": "true"}}, "needs an LQR env"),
+        ({"env": {"kind": "mountain_car"}, "ratio": {"source": "exact"}}, "needs an LQR env"),
     ],
 )
 def test_config_errors_name_the_setting(override, match):
@@ -119,7 +119,7 @@ def test_early_stopping_stops_the_ratio_stage(tmp_path):
     assert max(steps) < 400
 
 
-@pytest.mark.parametrize("source", ["none", "true"])
+@pytest.mark.parametrize("source", ["none", "exact"])
 def test_unweighted_and_true_ratio_sources(tmp_path, source):
     trainer = WBRMTrainer(tiny_config(ratio={"source": source}), tmp_path, progress=False)
     results = trainer.run()
@@ -165,7 +165,7 @@ def test_held_out_bellman_residual_is_reported(finished_run):
 
 
 def test_relative_true_ratio_is_bounded_by_one_over_beta(tmp_path):
-    trainer = WBRMTrainer(tiny_config(ratio={"source": "true", "relative_beta": 0.5, "self_normalise": False}), tmp_path, progress=False)
+    trainer = WBRMTrainer(tiny_config(ratio={"source": "exact", "relative_beta": 0.5, "self_normalise": False}), tmp_path, progress=False)
     trainer.run()
     w = trainer.q_buffer[:]["density_ratio"]
     assert w.max().item() <= 2.0 + 1e-6 and w.min().item() >= 0

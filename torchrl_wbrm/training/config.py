@@ -30,7 +30,7 @@ class RatioConfig:
     """Stage 1: the density ratio ŵ ≈ dP^e/dP^b (Section 3, "Density Ratio Estimation").
 
     Attributes:
-        source: ``"learned"`` (fit ŵ with the Basu loss), ``"true"`` (the exact LQR ratio, a reference) or
+        source: ``"learned"`` (fit ŵ with the Basu loss), ``"exact"`` (the exact LQR ratio, a reference; not ``true``, which Hydra reads as a boolean) or
             ``"none"`` (w ≡ 1: the unweighted Bellman residual, the ablation).
         divergence: ``"basu"`` (power divergence with ``alpha``) or ``"kl"`` (its α → 0 limit).
         alpha: Basu's α (paper: 0.5; 1 is uLSIF).
@@ -204,7 +204,7 @@ class MakeDatasetConfig:
 
 _CHOICES = {
     "algo": ("wbrm", "bc"),
-    "ratio.source": ("learned", "true", "none"),
+    "ratio.source": ("learned", "exact", "none"),
     "ratio.divergence": ("basu", "kl"),
     "q.residual": ("squared", "absolute_mean"),
     "q.bootstrap": ("target", "residual_gradient"),
@@ -251,8 +251,8 @@ def validate_config(cfg) -> None:
         raise ValueError(f"q.gamma must lie in (0, 1) or be null, got {cfg.q.gamma}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
-    if cfg.ratio.source == "true" and cfg.env.kind != "lqr":
-        raise ValueError(f"ratio.source='true' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
+    if cfg.ratio.source == "exact" and cfg.env.kind != "lqr":
+        raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
 
 
 def register_configs() -> None:

@@ -316,7 +316,7 @@ class WBRMTrainer:
         if source == "learned":
             w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
                            for chunk in d.split(8192)]).cpu()
-        elif source == "true":
+        elif source == "exact":
             w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
             beta = self.cfg.ratio.relative_beta
             if beta:  # the relative ratio p_e / (beta p_e + (1 - beta) p_b) of the true ratio

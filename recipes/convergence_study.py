@@ -1,0 +1,141 @@
+"""Convergence rates on LQR exp1: ŵ's error as the ratio sample size m grows, Q̂'s error as the data size n grows.
+
+    python recipes/convergence_study.py            # about 15 minutes on 2 cores
+    python recipes/convergence_study.py --quick    # smoke version
+
+Lemma 4.1 of the paper bounds E‖ŵ − w‖²_{L2(P^b)} by O(m^{−2α/(d+2α)} log³m) for a ratio of Hölder smoothness α
+in d = 4 dimensions (state 2 + action 2), so the L2 error falls like m^{−α/(d+2α)}: slope −1/6 for α = 1, −1/4 for
+α = 2, → −1/2 as α → ∞ (the Gaussian ratio here is infinitely smooth). Theorem 4.1 gives the weighted excess risk
+O(n^{−β/(d+2β)} log^{3/2} n) for Q* of smoothness β. We measure ‖ŵ − w‖ / ‖w‖ against the exact ratio and
+RMS(Q̂ − Q*) / std(Q*) on expert samples against the exact Q*, fit log-log slopes (least squares over all seeds)
+and draw them beside the theory's reference slopes. The networks and step budgets are fixed across sizes (the
+theorem lets the network grow with m and n), so an optimisation floor can flatten the curves at large sizes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+RATIO_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
+Q_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
+BUDGET = ["logger=none", "plots=false", "checkpoint_every=0", "eval.episodes=200", "eval.q_samples=5000",
+          "eval.train_episodes=50"]
+QUICK = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[16,16]", "eval.q_samples=300",
+         "eval.episodes=50"]
+
+
+def run(overrides: list[str], run_dir: Path) -> dict:
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_wbrm.training import WBRMTrainer, register_configs
+
+    torch.set_num_threads(1)
+    if (run_dir / "results.json").is_file():
+        return json.loads((run_dir / "results.json").read_text())
+    register_configs()
+    config_dir = str(Path(__file__).resolve().parents[1] / "configs")
+    with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+        cfg = compose("wbrm_offline", overrides=overrides)
+    results = WBRMTrainer(cfg, run_dir, progress=False).run()
+    results["n_train"] = int(cfg.env.lqr_data.behaviour_episodes * 20 * (1 - cfg.env.lqr_data.ratio_fraction)
+                             * (1 - cfg.q.holdout_fraction))
+    (run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
+    return results
+
+
+def jobs(quick: bool, seeds: int, out: Path) -> list[tuple[str, int, int, list[str], Path]]:
+    extra = QUICK if quick else []
+    ratio_sizes = RATIO_SIZES[:2] if quick else RATIO_SIZES
+    q_sizes = Q_SIZES[:2] if quick else Q_SIZES
+    ratio_steps = "ratio.steps=30" if quick else "ratio.steps=2000"
+    q_steps = "q.steps=30" if quick else "q.steps=3000"
+    out_jobs = []
+    for seed in range(seeds):
+        for m in ratio_sizes:  # m state-actions per side: m/20 expert episodes, 2m/20 behaviour (half to S^b)
+            ov = [*BUDGET, *extra, "env=lqr_exp1", f"env.lqr_data.expert_episodes={m // 20}",
+                  f"env.lqr_data.behaviour_episodes={2 * m // 20}", ratio_steps, "q.steps=1", "q.eval_every=1",
+                  "ratio.patience=10", f"seed={seed}"]
+            out_jobs.append(("ratio", m, seed, ov, out / "ratio" / f"m{m}" / f"seed{seed}"))
+        for n in q_sizes:  # n transitions in D: behaviour episodes split half to S^b, 10% of D held out
+            episodes = int(round(n / 20 / 0.5 / 0.9))
+            ov = [*BUDGET, *extra, "env=lqr_exp1", f"env.lqr_data.behaviour_episodes={episodes}",
+                  "ratio.source=exact", q_steps, "q.eval_every=100000", f"seed={seed}"]
+            out_jobs.append(("q", n, seed, ov, out / "q" / f"n{n}" / f"seed{seed}"))
+    return out_jobs
+
+
+def fit_slope(sizes, errors) -> float:
+    return float(np.polyfit(np.log(sizes), np.log(errors), 1)[0])
+
+
+def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.evaluation import mean_ci
+
+    panels = {
+        "ratio": ("m (state-action samples per side)", lambda r: r["ratio"]["ratio_relative_l2"], "‖ŵ − w‖ / ‖w‖ (L2(P^b))",
+                  {"α=1: −1/6": -1 / 6, "α=2: −1/4": -1 / 4, "α→∞: −1/2": -1 / 2}),
+        "q": ("n (transitions in D)", lambda r: r["final"]["q_error_expert"], "RMS(Q̂ − Q*) / std(Q*) on expert samples",
+              {"β=1: −1/6": -1 / 6, "β=2: −1/4": -1 / 4, "β→∞: −1/2": -1 / 2}),
+    }
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    lines = ["| quantity | size | seeds | error (mean ± 95% CI) |", "|---|---|---|---|"]
+    slopes = {}
+    for ax, (kind, (xlabel, get, ylabel, refs)) in zip(axes, panels.items()):
+        recs = [(size, get(r)) for k, size, _, r in records if k == kind]
+        if not recs:
+            continue
+        sizes = sorted({s for s, _ in recs})
+        means, halfs = [], []
+        for s in sizes:
+            ci = mean_ci([e for size, e in recs if size == s])
+            means.append(ci.mean)
+            halfs.append(0.0 if ci.n < 2 else ci.half_width)
+            lines.append(f"| {kind} | {s} | {ci.n} | {ci.mean:.4f} ± {halfs[-1]:.4f} |")
+        slope = fit_slope([s for s, _ in recs], [e for _, e in recs])
+        slopes[kind] = slope
+        ax.errorbar(sizes, means, yerr=halfs, marker="o", capsize=3, label=f"measured, slope {slope:.2f}")
+        for label, ref in refs.items():
+            ax.plot(sizes, [means[0] * (s / sizes[0]) ** ref for s in sizes], ls=":", label=label)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "convergence.png", dpi=110)
+    plt.close(fig)
+    text = "\n".join(lines) + "\n\nFitted log-log slopes: " + ", ".join(f"{k}: {v:.3f}" for k, v in slopes.items())
+    (out / "convergence.md").write_text(text + "\n")
+    return text
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="results/convergence_study")
+    args = parser.parse_args()
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    out = Path(args.out)
+    from joblib import Parallel, delayed
+
+    todo = jobs(args.quick, 1 if args.quick else args.seeds, out)
+    print(f"{len(todo)} runs into {out}")
+    results = Parallel(n_jobs=args.jobs)(delayed(run)(ov, d) for _, _, _, ov, d in todo)
+    records = [(k, size, seed, r) for (k, size, seed, _, _), r in zip(todo, results)]
+    print(report(records, out))
+
+
+if __name__ == "__main__":
+    main()
