@@ -127,3 +127,19 @@ def test_weighting_study_quick(tmp_path):
     tables = (tmp_path / "tables.md").read_text()
     assert "unweighted" in tables and "learned ŵ (paper)" in tables and "select" in tables
     assert (tmp_path / "weighting_study.png").is_file()
+
+
+def test_multirun_with_the_joblib_launcher_and_summary(tmp_path):
+    """The sweep machinery: Hydra multirun through the local joblib launcher, then a table over seeds."""
+    run_recipe(
+        "wbrm_offline.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1",
+        "ratio.source=none", *TINY_LQR, "plots=false", "logger=none", f"hydra.sweep.dir={tmp_path}",
+    )
+    assert len(list(tmp_path.rglob("results.json"))) == 2
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "summarise.py"), str(tmp_path), "--group-by", "ratio.source"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    row = [line for line in proc.stdout.splitlines() if line.startswith("| none")][0]
+    assert "| 2 |" in row and "±" in row  # two seeds, a confidence interval
