@@ -438,22 +438,30 @@ class WeightedBellmanLoss(LossModule):
                 )
 
     # ---------------------------------------------------------------- losses
-    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The weighted Bellman residual (:func:`weighted_bellman_residual`); returns ``(loss, diagnostics)``.
+    def bellman_error(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(Q(x_i, a_i), Y_i)``, each of shape ``[*B]``, with ``Y_i = r_i + γ (1 − terminated_i) max Q(x'_i, ·)``.
 
-        The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
+        ``Y`` carries a gradient exactly when the bootstrap is by residual gradient (``delay_value=False``).
+        Shared by :meth:`value_loss` and by subclasses (:class:`~torchrl_wbrm.objectives.MABOLoss`).
         """
         for key, why in ((self.tensor_keys.reward, "the reward"), (self.tensor_keys.done, "episode-end flag"),
                          (self.tensor_keys.terminated, "episode-end flag; no bootstrap where it is True")):
             per_sample(get_entry(tensordict, _next(key), why), tensordict.batch_size, _next(key))
         reward = tensordict.get(_next(self.tensor_keys.reward))
-        weight = self._weight(tensordict)
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
         target_value = self.value_estimator.value_estimate(
             tensordict.copy(), next_value=next_value.reshape(reward.shape)
         )
-        target_value = per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
+        return q_value, per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
+
+    def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted Bellman residual (:func:`weighted_bellman_residual`); returns ``(loss, diagnostics)``.
+
+        The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
+        """
+        weight = self._weight(tensordict)
+        q_value, target_value = self.bellman_error(tensordict)
         loss = weighted_bellman_residual(
             q_value,
             target_value,
