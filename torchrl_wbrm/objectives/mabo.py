@@ -12,7 +12,7 @@ from torchrl.data import TensorSpec
 
 from torchrl_wbrm.modules.maximisers import ActionMaximiser
 from torchrl_wbrm.objectives._utils import get_entry, per_sample, reduce_batch
-from torchrl_wbrm.objectives.weighted_bellman import _next, WeightedBellmanLoss, weighted_bellman_residual
+from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss, weighted_bellman_residual
 
 __all__ = ["ADVERSARIES", "MABOLoss", "average_bellman_residual", "linear_adversary_weight"]
 
