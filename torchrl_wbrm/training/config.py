@@ -14,11 +14,19 @@ from hydra.core.config_store import ConfigStore
 from torchrl_wbrm.data import EnvConfig
 
 __all__ = [
+    "BaselinesConfig",
+    "CQLConfig",
+    "DDPGConfig",
+    "DQNConfig",
     "EvalConfig",
+    "FQIConfig",
+    "IQLConfig",
+    "MABOConfig",
     "LoggerConfig",
     "MakeDatasetConfig",
     "QConfig",
     "RatioConfig",
+    "TD3BCConfig",
     "WBRMConfig",
     "register_configs",
     "validate_config",
@@ -155,14 +163,111 @@ class LoggerConfig:
 
 
 @dataclass
+class TD3BCConfig:
+    """TD3+BC (Fujimoto & Gu 2021) with torchrl's ``TD3BCLoss``: ``alpha`` (α of λ = α / mean|Q|), target policy
+    smoothing ``policy_noise`` clipped at ``noise_clip`` (action units), the critic's ``loss_function``."""
+
+    alpha: float = 2.5
+    policy_noise: float = 0.2
+    noise_clip: float = 0.5
+    loss_function: str = "l2"
+
+
+@dataclass
+class DDPGConfig:
+    """Offline DDPG (Lillicrap et al. 2016) with torchrl's ``DDPGLoss``."""
+
+    loss_function: str = "l2"
+
+
+@dataclass
+class CQLConfig:
+    """CQL(H) for continuous actions (Kumar et al. 2020) with torchrl's ``CQLLoss`` and a TanhNormal actor.
+
+    ``min_q_weight`` is the conservative penalty's weight (the paper's α), ``temperature`` its log-sum-exp
+    temperature, ``num_random`` the uniform actions per state, ``with_lagrange``/``lagrange_thresh`` the
+    Lagrangian variant, ``alpha_init`` the initial entropy coefficient (tuned as in SAC).
+    """
+
+    min_q_weight: float = 1.0
+    temperature: float = 1.0
+    num_random: int = 10
+    with_lagrange: bool = False
+    lagrange_thresh: float = 5.0
+    alpha_init: float = 1.0
+    loss_function: str = "l2"
+
+
+@dataclass
+class IQLConfig:
+    """IQL (Kostrikov et al. 2022) with torchrl's ``IQLLoss``: the value's ``expectile`` τ and the advantage-weighted
+    regression's inverse ``temperature`` β."""
+
+    expectile: float = 0.7
+    temperature: float = 3.0
+    loss_function: str = "l2"
+
+
+@dataclass
+class DQNConfig:
+    """DQN (Mnih et al. 2015) with torchrl's ``DQNLoss`` on a discretised action box: ``num_bins`` values per action
+    coordinate (the env's ``ActionDiscretizer`` grid, bin medians), one categorical over the ``num_bins ** m`` joint
+    actions."""
+
+    num_bins: int = 21
+    loss_function: str = "l2"
+
+
+@dataclass
+class FQIConfig:
+    """Fitted Q iteration (Ernst et al. 2005): regress Q onto a frozen target for ``target_update_every`` steps
+    (``HardUpdate``), then refresh the target."""
+
+    target_update_every: int = 50
+
+
+@dataclass
+class MABOConfig:
+    """MABO (Xie & Jiang 2020) with :class:`~torchrl_wbrm.objectives.MABOLoss`: the adversary class
+    (``"network"`` or ``"linear"`` on fixed features (x, a, 1)), its bound ``w_bound``, the L2 penalty ``critic_l2``,
+    the adversary's ``critic_lr`` and ``critic_num_cells``, ``critic_steps`` ascent steps per Q step, and
+    ``delay_value`` (frozen target Q rather than the paper's gradient through both Q terms)."""
+
+    adversary: str = "network"
+    w_bound: float = 1.0
+    critic_l2: float = 0.0
+    critic_lr: float = 1e-3
+    critic_num_cells: List[int] = field(default_factory=lambda: [256, 256])
+    critic_steps: int = 1
+    delay_value: bool = False
+
+
+@dataclass
+class BaselinesConfig:
+    """Settings of the baseline algorithms (``algo=...``); shared settings (networks, lr, steps, batch size, γ,
+    target τ, actor delay) come from ``q``, so every method gets the same networks, data and budget."""
+
+    td3bc: TD3BCConfig = field(default_factory=TD3BCConfig)
+    ddpg: DDPGConfig = field(default_factory=DDPGConfig)
+    cql: CQLConfig = field(default_factory=CQLConfig)
+    iql: IQLConfig = field(default_factory=IQLConfig)
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    fqi: FQIConfig = field(default_factory=FQIConfig)
+    mabo: MABOConfig = field(default_factory=MABOConfig)
+
+
+@dataclass
 class WBRMConfig:
     """``recipes/wbrm_offline.py``: the two-stage offline recipe.
 
     Attributes:
         env: the environment and its data (group ``env``).
-        algo: ``"wbrm"`` (the two stages) or ``"bc"`` (behaviour cloning of the expert's actions in S^e with
-            torchrl's ``BCLoss``, a reference: on LQR the expert is the optimum plus small noise).
-        ratio: stage 1. q: stage 2. eval: evaluation. logger: logging (group ``logger``).
+        algo: ``"wbrm"`` (the two stages; with ``ratio.source=none`` the unweighted Bellman residual, the
+            ablation), ``"bc"`` (behaviour cloning of the expert's actions in S^e with torchrl's ``BCLoss``, a
+            reference: on LQR the expert is the optimum plus small noise) or a baseline on D: ``"td3bc"``,
+            ``"ddpg"``, ``"cql"``, ``"iql"``, ``"dqn"``, ``"fqi"``, ``"mabo"`` (group ``algo``; see
+            :mod:`torchrl_wbrm.training.algos`).
+        ratio: stage 1. q: stage 2 (and the shared settings of every algo). baselines: per-baseline settings. eval: evaluation. logger: logging (group ``logger``).
         seed: seeds data, initialisation and sampling.
         device: torch device.
         threads: torch threads (``None``: torch's default).
@@ -175,6 +280,7 @@ class WBRMConfig:
     algo: str = "wbrm"
     ratio: RatioConfig = field(default_factory=RatioConfig)
     q: QConfig = field(default_factory=QConfig)
+    baselines: BaselinesConfig = field(default_factory=BaselinesConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = 0
@@ -203,7 +309,8 @@ class MakeDatasetConfig:
 
 
 _CHOICES = {
-    "algo": ("wbrm", "bc"),
+    "algo": ("wbrm", "bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"),
+    "baselines.mabo.adversary": ("network", "linear"),
     "ratio.source": ("learned", "exact", "none"),
     "ratio.divergence": ("basu", "kl"),
     "q.residual": ("squared", "absolute_mean"),
@@ -251,6 +358,14 @@ def validate_config(cfg) -> None:
         raise ValueError(f"q.gamma must lie in (0, 1) or be null, got {cfg.q.gamma}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
+    for key in ("baselines.fqi.target_update_every", "baselines.mabo.w_bound", "baselines.mabo.critic_lr",
+                "baselines.mabo.critic_steps", "baselines.cql.num_random", "baselines.iql.temperature"):
+        if not _get(cfg, key) > 0:
+            raise ValueError(f"{key} must be > 0, got {_get(cfg, key)!r}.")
+    if not 0 < cfg.baselines.iql.expectile < 1:
+        raise ValueError(f"baselines.iql.expectile must lie in (0, 1), got {cfg.baselines.iql.expectile}.")
+    if not cfg.baselines.dqn.num_bins >= 2:
+        raise ValueError(f"baselines.dqn.num_bins must be >= 2, got {cfg.baselines.dqn.num_bins}.")
     if cfg.ratio.source == "exact" and cfg.env.kind != "lqr":
         raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
 

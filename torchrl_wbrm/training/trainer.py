@@ -5,6 +5,9 @@ for early stopping; ŵ is then computed *once* over D and stored in D's replay b
 (optionally shaped and self-normalised), never recomputed per batch. Stage 2 trains Q (and the actor) with
 :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's ``SoftUpdate`` and periodic evaluation.
 
+Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.training.algos` builds each
+method's loss, optimisers, step function and evaluated policy; stage 1 runs only for ``wbrm`` with a learned ratio.
+
 Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
 evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
 history; ``WBRMTrainer(cfg, run_dir, resume=True)`` continues from it and ends bit-identical to an uninterrupted run.
@@ -26,21 +29,21 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
-from torchrl.objectives import BCLoss, SoftUpdate
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, collect_transitions, make_offline_datasets, make_replay_buffer
 from torchrl_wbrm.data.datasets import PairedSampler, split_by_episode
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
-from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
-from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
+from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.policies import (
     lqr_true_density_ratio,
     make_lqr_behaviour,
     make_lqr_expert,
     make_mountain_car_env,
 )
+from torchrl_wbrm.training.algos import Algo, AlgoContext, build_algo
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.weights import shape_weights
 
@@ -170,33 +173,24 @@ class WBRMTrainer:
         self.ratio_best = {"loss": math.inf, "state": copy.deepcopy(self.ratio_network.state_dict()), "bad": 0}
 
     def _setup_q(self) -> None:
+        """Stage 2 (or the baseline named by ``algo``): loss, optimisers, step function and evaluated policy."""
         qc = self.cfg.q
         d = self.datasets.transitions[:]
         init_bias = d["next", "reward"].mean().item() / (1 - self.gamma) if qc.init_bias else 0.0
-        self.value_network = make_q_network(
-            self.observation_dim, self.action_dim, num_cells=qc.num_cells, initial_bias=init_bias
-        ).to(self.device)
-        self.actor = make_deterministic_actor(self.observation_dim, self.action_spec, num_cells=qc.actor_num_cells).to(
-            self.device
-        )
-        self.q_loss = WeightedBellmanLoss(
-            self.value_network,
-            actor_network=self.actor,
-            residual=qc.residual,
-            delay_value=qc.bootstrap == "target",
-            use_weights=self.cfg.ratio.source != "none",
-            maximiser=qc.maximiser,
+        context = AlgoContext(
+            cfg=self.cfg,
+            observation_dim=self.observation_dim,
+            action_dim=self.action_dim,
             action_spec=self.action_spec,
-            num_action_samples=qc.num_action_samples,
-            weight_actor_loss=qc.weight_actor_loss,
-            bc_alpha=qc.bc_alpha,
+            gamma=self.gamma,
+            q_initial_bias=init_bias,
+            device=self.device,
         )
-        self.q_loss.make_value_estimator(gamma=self.gamma)
-        self.target_updater = SoftUpdate(self.q_loss, tau=qc.target_tau) if qc.bootstrap == "target" else None
-        self.value_optim = torch.optim.Adam(self.q_loss.value_network_params.values(True, True), lr=qc.lr)
-        self.actor_optim = torch.optim.Adam(self.q_loss.actor_network_params.values(True, True), lr=qc.actor_lr)
+        self.algo: Algo = build_algo(self.cfg.algo, context)
+        self.q_loss = self.algo.loss
+        self.actor = self.algo.policy  # the policy evaluated (deterministic mode)
+        self.optimisers = self.algo.optimisers
         self.q_buffer = None  # built after stage 1, with the weights in it
-        self.bc_loss = BCLoss(self.actor, loss_function="l2") if self.cfg.algo == "bc" else None
 
     def _setup_evaluation(self) -> None:
         ec = self.cfg.eval
@@ -307,12 +301,12 @@ class WBRMTrainer:
     # ------------------------------------------------------------------ weights over D
     @torch.no_grad()
     def _build_q_buffer(self) -> None:
-        if self.cfg.algo == "bc":
+        if self.algo.data == "expert":
             self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
             self.weight_stats = {}
             return
         d = self.q_train_data.clone()
-        source = self.cfg.ratio.source
+        source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
         if source == "learned":
             w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
                            for chunk in d.split(8192)]).cpu()
@@ -326,38 +320,16 @@ class WBRMTrainer:
         rc = self.cfg.ratio
         w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
         d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
+        if self.algo.map_data is not None:
+            d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
         self.weight_stats = ratio_error(w)
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
-        batch = self.q_buffer.sample().to(self.device)
-        loss_value, figures = self.q_loss.value_loss(batch)
-        self.value_optim.zero_grad(set_to_none=True)
-        loss_value.backward()
-        if self.cfg.q.grad_clip:
-            torch.nn.utils.clip_grad_norm_(self.q_loss.value_network_params.values(True, True), self.cfg.q.grad_clip)
-        self.value_optim.step()
-        out = {"loss_value": loss_value.detach()}
-        out.update({k: v for k, v in figures.items() if v.ndim == 0})
-        if step % self.cfg.q.actor_delay == 0:
-            loss_actor, actor_figures = self.q_loss.actor_loss(batch)
-            self.actor_optim.zero_grad(set_to_none=True)
-            loss_actor.backward()
-            self.actor_optim.step()
-            out["loss_actor"] = loss_actor.detach()
-            if self.target_updater is not None:
-                self.target_updater.step()
-        return out
-
-    def _bc_step(self, step: int) -> dict:
-        batch = self.q_buffer.sample().to(self.device)
-        loss = self.bc_loss(batch)["loss_bc"]
-        self.actor_optim.zero_grad(set_to_none=True)
-        loss.backward()
-        self.actor_optim.step()
-        return {"loss_bc": loss.detach()}
+        """One update of the configured algo on one batch of its buffer."""
+        return self.algo.step(self.q_buffer.sample().to(self.device), step)
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
@@ -387,10 +359,10 @@ class WBRMTrainer:
                 out[f"{key}_ci"] = res[key].half_width
                 out[f"{key}_stderr"] = res[key].stderr
             out["optimal_return_exact"] = res["optimal_return_exact"]
-            for name, samples in self.eval_samples.items() if self.cfg.algo == "wbrm" else ():
-                s = samples.to(self.device)
-                q_hat = self.value_network(s.clone())["state_action_value"].cpu()
-                q_star = self.lqr_env.optimal_q(samples["observation"].double(), samples["action"].double())
+            for name, samples in self.eval_samples.items() if self.algo.q_value is not None else ():
+                q_hat, action = self.algo.q_value(samples.to(self.device))
+                q_hat = q_hat.cpu()
+                q_star = self.lqr_env.optimal_q(samples["observation"].double(), action.cpu().double())
                 errs = q_error(q_hat, q_star)
                 out[f"q_error_{name}"] = errs["relative_spread_error"]
                 out[f"q_bias_{name}"] = errs["bias"]
@@ -399,9 +371,9 @@ class WBRMTrainer:
         else:
             res = evaluate_returns(self.mc_env, self.actor, episodes=episodes, seed=ec.seed)
             out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
-        if self.cfg.algo == "wbrm":
+        if self.algo.bellman_loss is not None:
             held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
-            _, figures = self.q_loss.value_loss(held_out.to(self.device))
+            _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
             out["held_out_bellman_residual"] = figures["td_error"].mean().item()  # unweighted mean δ², any residual form
         self.actor.train()
         return out
@@ -427,9 +399,8 @@ class WBRMTrainer:
         if self.state["stage"] == "done" and self.state["step"] < self.cfg.q.steps:
             self.state["stage"] = "q"  # resumed with a larger budget: continue training
         if self.state["stage"] == "q":
-            step_fn = self._bc_step if self.cfg.algo == "bc" else self._q_step
             done = self._run_stage(
-                "q", self.cfg.q.steps, step_fn, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
+                "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
             )
             self.save_checkpoint()
             if not done:
@@ -477,8 +448,7 @@ class WBRMTrainer:
             "history": copy.deepcopy(self.history),
             "rng": get_rng_state(),
             "q_loss": self.q_loss.state_dict(),
-            "value_optim": self.value_optim.state_dict(),
-            "actor_optim": self.actor_optim.state_dict(),
+            "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
             "data_fingerprint": self.data_fingerprint,
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
         }
@@ -513,9 +483,14 @@ class WBRMTrainer:
                 raise ValueError(f"Cannot resume from {path}: its '{section}' settings differ from this config's.")
         self.state = sd["state"]
         self.history = sd["history"]
+        if saved.get("algo", "wbrm") != self.cfg.algo:
+            raise ValueError(f"Cannot resume from {path}: it ran algo={saved.get('algo')!r}, not {self.cfg.algo!r}.")
         self.q_loss.load_state_dict(sd["q_loss"])
-        self.value_optim.load_state_dict(sd["value_optim"])
-        self.actor_optim.load_state_dict(sd["actor_optim"])
+        # checkpoints written before the algos refactor hold "value_optim" and "actor_optim"
+        optimisers = sd.get("optimisers") or {"value": sd["value_optim"], "actor": sd["actor_optim"]}
+        for name, optimiser in self.optimisers.items():
+            if name in optimisers:
+                optimiser.load_state_dict(optimisers[name])
         if self.ratio_network is not None:
             self.ratio_loss.load_state_dict(sd["ratio_loss"])
             self.ratio_optim.load_state_dict(sd["ratio_optim"])
