@@ -4,6 +4,7 @@
     python recipes/wbrm_offline.py env=lqr_exp3 seed=2
     python recipes/wbrm_offline.py env=mountain_car q.gamma=0.99
     python recipes/wbrm_offline.py ratio.source=none                # the unweighted ablation
+    python recipes/wbrm_offline.py algo=td3bc                       # a baseline on the same data (configs/algo/)
     python recipes/wbrm_offline.py logger=wandb                     # offline wandb run in the run directory
     python recipes/wbrm_offline.py resume=outputs/wbrm_offline/...  # continue an interrupted run exactly
 

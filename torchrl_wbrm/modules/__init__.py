@@ -20,6 +20,7 @@ from torchrl_wbrm.modules.networks import (
     make_deterministic_actor,
     make_discrete_q_network,
     make_q_network,
+    make_tanh_normal_actor,
 )
 
 __all__ = [
@@ -35,6 +36,7 @@ __all__ = [
     "make_deterministic_actor",
     "make_discrete_q_network",
     "make_q_network",
+    "make_tanh_normal_actor",
     "max_q_over_candidates",
     "uniform_actions",
 ]

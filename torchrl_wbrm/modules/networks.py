@@ -13,13 +13,16 @@ import torch
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
-from torchrl.modules import MLP, Actor, QValueActor, ValueOperator
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import MLP, Actor, ProbabilisticActor, QValueActor, TanhNormal, ValueOperator
 
 __all__ = [
     "BoundedTanh",
     "make_deterministic_actor",
     "make_discrete_q_network",
     "make_q_network",
+    "make_tanh_normal_actor",
 ]
 
 
@@ -166,3 +169,29 @@ def make_deterministic_actor(
     action_dim = action_spec.shape[-1] if len(action_spec.shape) else 1
     module = nn.Sequential(_mlp(observation_dim, action_dim, num_cells, activation), BoundedTanh(low, high))
     return Actor(module, in_keys=list(in_keys), out_keys=[out_key], spec=action_spec)
+
+
+def make_tanh_normal_actor(
+    observation_dim: int, action_spec: Bounded, *, num_cells: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU
+) -> ProbabilisticActor:
+    """A stochastic actor ``a ~ TanhNormal(μ(x), σ(x))`` inside the box of ``action_spec`` (for CQL and IQL).
+
+    An MLP writes ``2m`` numbers, :class:`~tensordict.nn.NormalParamExtractor` splits them into ``"loc"`` and a
+    positive ``"scale"``; :class:`~torchrl.modules.TanhNormal` squashes into ``[low, high]``. In deterministic mode
+    (evaluation) the action is the squashed location ``low + (high − low)(tanh(μ) + 1) / 2``.
+    """
+    action_dim = action_spec.shape[-1]
+    net = nn.Sequential(
+        MLP(in_features=observation_dim, out_features=2 * action_dim, num_cells=list(num_cells),
+            activation_class=activation),
+        NormalParamExtractor(),
+    )
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high},
+        default_interaction_type=ExplorationType.RANDOM,
+    )

@@ -36,11 +36,10 @@ from typing import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.envs.utils import ExplorationType
-from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import (
     BCLoss,
     CQLLoss,
@@ -54,7 +53,12 @@ from torchrl.objectives import (
 )
 
 from torchrl_wbrm.envs import make_lqr_env
-from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
+from torchrl_wbrm.modules import (
+    make_deterministic_actor,
+    make_discrete_q_network,
+    make_q_network,
+    make_tanh_normal_actor,
+)
 from torchrl_wbrm.objectives import WeightedBellmanLoss
 from torchrl_wbrm.training.config import WBRMConfig
 
@@ -171,32 +175,6 @@ def _q_network(ctx: AlgoContext) -> ValueOperator:
 def _deterministic_actor(ctx: AlgoContext):
     return make_deterministic_actor(ctx.observation_dim, ctx.action_spec, num_cells=ctx.cfg.q.actor_num_cells).to(
         ctx.device
-    )
-
-
-def make_tanh_normal_actor(
-    observation_dim: int, action_spec: Bounded, *, num_cells=(256, 256), activation=nn.ReLU
-) -> ProbabilisticActor:
-    """A stochastic actor ``a ~ TanhNormal(μ(x), σ(x))`` inside the box of ``action_spec`` (for CQL and IQL).
-
-    An MLP writes ``2m`` numbers, :class:`~tensordict.nn.NormalParamExtractor` splits them into ``"loc"`` and a
-    positive ``"scale"``; :class:`~torchrl.modules.TanhNormal` squashes into ``[low, high]``. In deterministic mode
-    (evaluation) the action is the squashed location ``low + (high − low)(tanh(μ) + 1) / 2``.
-    """
-    action_dim = action_spec.shape[-1]
-    net = nn.Sequential(
-        MLP(in_features=observation_dim, out_features=2 * action_dim, num_cells=list(num_cells),
-            activation_class=activation),
-        NormalParamExtractor(),
-    )
-    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
-    return ProbabilisticActor(
-        module,
-        in_keys=["loc", "scale"],
-        spec=action_spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high},
-        default_interaction_type=ExplorationType.RANDOM,
     )
 
 

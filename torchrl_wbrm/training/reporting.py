@@ -8,7 +8,9 @@ def summarise(results: dict) -> str:
     """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar)."""
     f = results.get("final", {})
     w = results.get("weights", {})
-    lines = [f"env {results['env']}  seed {results['seed']}  ratio source: {results['ratio']['source']}"]
+    algo = results.get("algo", "wbrm")
+    detail = f"ratio source: {results['ratio']['source']}" if algo == "wbrm" else "baseline"
+    lines = [f"env {results['env']}  seed {results['seed']}  algo {algo} ({detail})"]
     if "regret" in f:
         lines += [
             f"return        {f['return']:.4f} ± {f['return_ci']:.4f}   (exact optimum {f['optimal_return_exact']:.4f})",
