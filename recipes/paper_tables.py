@@ -5,7 +5,8 @@
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
 
 It launches one Hydra multirun of ``recipes/wbrm_offline.py`` per environment through the local joblib launcher
-(``algo=...`` x ``seed=...``; every algorithm sees the same data for a given seed), then writes ``tables.md``:
+(``algo=...`` x ``seed=...``; every algorithm sees the same data for a given seed, collected once into a
+``data_cache``), then writes ``tables.md``:
 Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and experiment, beside the exact optimum and the
 paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
 mean(Q̂ − Q*) on behaviour and expert data, and Table 3 (MountainCar: mean return over 100 episodes ± 95% CI).
@@ -46,7 +47,7 @@ def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: 
         sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m",
         "hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}", "threads=1",
         f"env={env}", f"algo={','.join(algos)}", f"seed={','.join(str(s) for s in range(seeds))}",
-        "logger=none", "plots=false", "checkpoint_every=0",
+        "logger=none", "plots=false", "checkpoint_every=0", f"data_cache={out / 'data_cache'}",
         f"hydra.sweep.dir={out / env}", "hydra.sweep.subdir=${algo}_seed${seed}",
         *extra,
     ]

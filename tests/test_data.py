@@ -177,3 +177,17 @@ def test_mountain_car_dataset_shape():
     assert d["observation"].shape[-1] == 2 and d["action"].shape[-1] == 1
     assert ds.metadata["expert_mean_return"] > 80
     assert "behaviour_mean_return" in ds.metadata
+
+
+def test_cached_datasets_are_reused_and_keyed_by_config(tmp_path):
+    from torchrl_wbrm.data import EnvConfig, cached_offline_datasets
+
+    env = EnvConfig(lqr_data=SMALL)
+    a = cached_offline_datasets(env, seed=0, cache_dir=tmp_path)
+    b = cached_offline_datasets(env, seed=0, cache_dir=tmp_path)
+    assert (a.transitions[:]["action"] == b.transitions[:]["action"]).all()
+    assert len(list(tmp_path.iterdir())) == 1
+    cached_offline_datasets(env, seed=1, cache_dir=tmp_path)
+    other = EnvConfig(lqr_data=LQRDataConfig(behaviour_episodes=40, expert_episodes=30, parallel_envs=30))
+    cached_offline_datasets(other, seed=0, cache_dir=tmp_path)
+    assert len([p for p in tmp_path.iterdir() if not p.name.startswith(".")]) == 3

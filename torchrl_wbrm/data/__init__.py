@@ -7,7 +7,7 @@ from torchrl_wbrm.data.datasets import (
     make_replay_buffer,
     split_by_episode,
 )
-from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, make_offline_datasets
+from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, cached_offline_datasets, make_offline_datasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
 
@@ -15,6 +15,7 @@ __all__ = [
     "ENV_KINDS",
     "EnvConfig",
     "make_offline_datasets",
+    "cached_offline_datasets",
     "OfflineDatasets",
     "PairedSampler",
     "collect_transitions",

@@ -1,14 +1,20 @@
 """One entry point from an environment config to its offline datasets (used by every recipe)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
 from torchrl_wbrm.envs import LQRConfig
 
-__all__ = ["EnvConfig", "ENV_KINDS", "make_offline_datasets"]
+__all__ = ["EnvConfig", "ENV_KINDS", "make_offline_datasets", "cached_offline_datasets"]
 
 ENV_KINDS = ("lqr", "mountain_car")
 
@@ -61,3 +67,27 @@ def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", s
     return make_mountain_car_datasets(
         _to_dataclass(MountainCarDataConfig, env.mountain_car_data), seed=seed, storage=storage, scratch_dir=scratch_dir
     )
+
+
+def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.PathLike) -> OfflineDatasets:
+    """:func:`make_offline_datasets`, saved under ``cache_dir`` and loaded on later calls with the same env and seed.
+
+    The key is a hash of the whole env config and the seed, so any change of data settings makes new data. Runs in
+    parallel may race to write one entry: each writes a private folder and renames it into place; a loser loads the
+    winner's copy (the two are identical: same config, same seed).
+    """
+    env = _to_dataclass(EnvConfig, env)
+    key = hashlib.sha1(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str).encode()).hexdigest()
+    target = Path(cache_dir) / f"{env.name}_seed{seed}_{key[:12]}"
+    if not target.is_dir():
+        datasets = make_offline_datasets(env, seed=seed)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=target.parent, prefix=".tmp_"))
+        datasets.save(tmp)
+        try:
+            os.rename(tmp, target)
+        except OSError:  # another run got there first
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            return datasets
+    return OfflineDatasets.load(target)

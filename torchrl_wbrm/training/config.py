@@ -272,6 +272,7 @@ class WBRMConfig:
         device: torch device.
         threads: torch threads (``None``: torch's default).
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
+        data_cache: a folder to keep collected datasets in, keyed by env config and seed (``None``: collect anew).
         resume: a run directory to resume from (``None``: a new run).
         plots: write PNG plots.
     """
@@ -287,6 +288,7 @@ class WBRMConfig:
     device: str = "cpu"
     threads: Optional[int] = None
     checkpoint_every: int = 1000
+    data_cache: Optional[str] = None
     resume: Optional[str] = None
     plots: bool = True
 

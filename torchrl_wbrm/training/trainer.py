@@ -31,7 +31,13 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
 from tqdm.auto import tqdm
 
-from torchrl_wbrm.data import OfflineDatasets, collect_transitions, make_offline_datasets, make_replay_buffer
+from torchrl_wbrm.data import (
+    OfflineDatasets,
+    cached_offline_datasets,
+    collect_transitions,
+    make_offline_datasets,
+    make_replay_buffer,
+)
 from torchrl_wbrm.data.datasets import PairedSampler, split_by_episode
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
@@ -123,7 +129,10 @@ class WBRMTrainer:
 
     def _setup_data(self) -> None:
         t0 = time.perf_counter()
-        self.datasets: OfflineDatasets = make_offline_datasets(self.cfg.env, seed=self.cfg.seed)
+        if self.cfg.data_cache:
+            self.datasets: OfflineDatasets = cached_offline_datasets(self.cfg.env, seed=self.cfg.seed, cache_dir=self.cfg.data_cache)
+        else:
+            self.datasets = make_offline_datasets(self.cfg.env, seed=self.cfg.seed)
         self.data_seconds = time.perf_counter() - t0
         d = self.datasets.transitions[:]
         gen = torch.Generator().manual_seed(self.cfg.seed + 23)
