@@ -143,3 +143,17 @@ def test_multirun_with_the_joblib_launcher_and_summary(tmp_path):
     assert proc.returncode == 0, proc.stderr
     row = [line for line in proc.stdout.splitlines() if line.startswith("| none")][0]
     assert "| 2 |" in row and "±" in row  # two seeds, a confidence interval
+
+
+def test_paper_tables_quick(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "paper_tables.py"), "--quick", "--algos", "wbrm", "td3bc",
+         "--envs", "lqr_exp1", "mountain_car", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    tables = (tmp_path / "tables.md").read_text()
+    assert "Table 2 (LQR)" in tables and "Table 3 (MountainCarContinuous-v0)" in tables
+    assert "| td3bc |" in tables and "| wbrm |" in tables and "85.435" in tables  # the exact optimum row
+    assert len(list((tmp_path / "data_cache").iterdir())) == 2  # one collection per env and seed, shared
