@@ -23,7 +23,7 @@ import numpy as np
 RATIO_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
 Q_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
 BUDGET = ["logger=none", "plots=false", "checkpoint_every=0", "eval.episodes=200", "eval.q_samples=5000",
-          "eval.train_episodes=50"]
+          "eval.train_episodes=50", "ratio.temper=1.0", "ratio.mix=0.0", "ratio.clip=null"]
 QUICK = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[16,16]", "eval.q_samples=300",
          "eval.episodes=50"]
 
