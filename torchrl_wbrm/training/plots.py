@@ -62,7 +62,8 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
         if "regret" in evals[-1]:
             ax = axes[0, 1]
             ax.errorbar(steps, [r["regret"] for r in evals], yerr=[r["regret_ci"] for r in evals], marker="o", capsize=3)
-            ax.set_yscale("symlog", linthresh=1e-3)
+            if min(r["regret"] for r in evals) > 0:
+                ax.set_yscale("log")
             ax.set_xlabel("step")
             ax.set_ylabel("paired regret vs exact optimum")
         fig.suptitle(title)
