@@ -15,7 +15,6 @@ theorem lets the network grow with m and n), so an optimisation floor can flatte
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
@@ -30,23 +29,9 @@ QUICK = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[1
 
 
 def run(overrides: list[str], run_dir: Path) -> dict:
-    import torch
-    from hydra import compose, initialize_config_dir
+    from torchrl_wbrm.training.runs import run_overrides
 
-    from torchrl_wbrm.training import WBRMTrainer, register_configs
-
-    torch.set_num_threads(1)
-    if (run_dir / "results.json").is_file():
-        return json.loads((run_dir / "results.json").read_text())
-    register_configs()
-    config_dir = str(Path(__file__).resolve().parents[1] / "configs")
-    with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
-        cfg = compose("wbrm_offline", overrides=overrides)
-    results = WBRMTrainer(cfg, run_dir, progress=False).run()
-    results["n_train"] = int(cfg.env.lqr_data.behaviour_episodes * 20 * (1 - cfg.env.lqr_data.ratio_fraction)
-                             * (1 - cfg.q.holdout_fraction))
-    (run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
-    return results
+    return run_overrides(overrides, run_dir)
 
 
 def jobs(quick: bool, seeds: int, out: Path) -> list[tuple[str, int, int, list[str], Path]]:

@@ -24,7 +24,6 @@ held-out Bellman residual on unseen behaviour episodes (``select`` in tables.md)
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
@@ -110,24 +109,12 @@ def cell_dir(out: Path, cell: dict, seed: int) -> Path:
 
 
 def run_one(cell: dict, seed: int, budget: list[str], out: str) -> str:
-    """Run one (cell, seed) in this process with one torch thread; skip it if its results exist."""
-    import torch
-    from hydra import compose, initialize_config_dir
+    """Run one (cell, seed) with one torch thread; skipped if its results exist."""
+    from torchrl_wbrm.training.runs import run_overrides
 
-    from torchrl_wbrm.training import WBRMTrainer, register_configs
-
-    torch.set_num_threads(1)
     run_dir = cell_dir(Path(out), cell, seed)
-    if (run_dir / "results.json").is_file():
-        return str(run_dir)
-    register_configs()
-    config_dir = str(Path(__file__).resolve().parents[1] / "configs")
-    with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
-        cfg = compose("wbrm_offline", overrides=[*budget, *cell["overrides"], f"seed={seed}", "threads=1"])
-    trainer = WBRMTrainer(cfg, run_dir, progress=False)
-    results = trainer.run()
-    results["study"] = {k: cell[k] for k in ("block", "env", "setting", "method")}
-    (run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
+    labels = {"study": {k: cell[k] for k in ("block", "env", "setting", "method")}}
+    run_overrides([*budget, *cell["overrides"], f"seed={seed}"], run_dir, extra_results=labels)
     return str(run_dir)
 
 
