@@ -178,3 +178,18 @@ def test_behaviour_cloning_reference(tmp_path):
     assert "q_error_expert" not in results["final"]
     # 200 steps of cloning a linear expert already give a small regret on exp1
     assert results["final"]["regret"] < 0.5
+
+
+def test_ratio_gradient_clipping_bounds_the_step(tmp_path):
+    """ratio.grad_clip bounds the norm of each stage-1 gradient step (checked with SGD at lr 1, where step = gradient)."""
+    def first_step_change(clip):
+        torch.manual_seed(0)
+        trainer = WBRMTrainer(tiny_config(ratio={"grad_clip": clip, "lr": 1e-2}), tmp_path / str(clip), progress=False)
+        before = [p.detach().clone() for p in trainer.ratio_loss.parameters()]
+        trainer.ratio_optim = torch.optim.SGD(trainer.ratio_loss.parameters(), lr=1.0)
+        trainer._ratio_step(1)
+        return sum((p.detach() - b).norm() ** 2 for p, b in zip(trainer.ratio_loss.parameters(), before)).sqrt().item()
+
+    clipped, free = first_step_change(1e-3), first_step_change(None)
+    assert clipped <= 1e-3 + 1e-9  # SGD with lr 1: the step is the clipped gradient, norm <= 1e-3
+    assert free > 10 * clipped
