@@ -59,13 +59,8 @@ from torchrl_wbrm.modules import (
     make_q_network,
     make_tanh_normal_actor,
 )
-from torchrl_wbrm.objectives import WeightedBellmanLoss
+from torchrl_wbrm.objectives import MABOLoss, WeightedBellmanLoss
 from torchrl_wbrm.training.config import WBRMConfig
-
-try:  # written alongside this module; the "mabo" slot is wired when it exists
-    from torchrl_wbrm.objectives import MABOLoss
-except ImportError:  # pragma: no cover
-    MABOLoss = None
 
 __all__ = [
     "ALGOS",
@@ -516,8 +511,6 @@ def build_mabo(ctx: AlgoContext) -> Algo:
     descent step of Q (``loss_value`` with w fixed), and every ``q.actor_delay`` steps the actor (the max over next
     actions) and, with ``delay_value``, the target (``SoftUpdate``).
     """
-    if MABOLoss is None:  # pragma: no cover
-        raise NotImplementedError("algo='mabo' needs torchrl_wbrm.objectives.MABOLoss, which is not available.")
     qc, mc = ctx.cfg.q, ctx.cfg.baselines.mabo
     value_network, actor = _q_network(ctx), _deterministic_actor(ctx)
     loss = MABOLoss(value_network, _mabo_adversary(ctx, mc), actor_network=actor, adversary=mc.adversary,
