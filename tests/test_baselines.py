@@ -35,7 +35,8 @@ def test_each_algo_runs_through_the_trainer(tmp_path, single_thread, algo):
     has_q = algo != "bc"
     assert ("q_error_expert" in final) == has_q
     assert (trainer.ratio_network is not None) == (algo == "wbrm")
-    assert ("held_out_bellman_residual" in final) == (algo in ("wbrm", "fqi", "mabo"))
+    assert ("held_out_bellman_residual" in final) == (algo in ("wbrm", "brm", "fqi", "mabo"))
+    assert saved["ratio"]["source"] == ("learned" if algo == "wbrm" else "none")
     if algo not in ("wbrm", "bc"):  # baselines never see the stage-1 weights
         assert (trainer.q_buffer[:]["density_ratio"] == 1).all()
 
@@ -82,7 +83,7 @@ def _learning_config(algo: str, steps: int, **overrides) -> WBRMConfig:
 
 # (algo, steps, overrides, regret threshold); measured regret at seed 0 in the comment
 LEARNING = [
-    ("wbrm", 1000, {}, 0.2),  # unweighted BRM (ratio.source=none): 0.056 ± 0.008 (seed 1: 0.035), 5 s
+    ("brm", 1000, {}, 0.2),  # unweighted BRM: 0.056 ± 0.008 (seed 1: 0.035), 5 s
     ("fqi", 1000, {}, 0.2),  # K = 50: 0.127 ± 0.012 (seed 1: 0.047), 5 s
     ("td3bc", 1000, {}, 0.2),  # 0.109 ± 0.008 (seed 1: 0.104), 7 s
     ("ddpg", 1000, {}, 0.2),  # 0.064 ± 0.008 (seed 1: 0.061), 6 s

@@ -1,4 +1,4 @@
-"""Network builders: Q networks, a bounded actor, the positive bounded density-ratio network, action maximisers."""
+"""Network builders: Q networks, fixed polynomial features, a bounded actor, the positive bounded density-ratio network, action maximisers."""
 from __future__ import annotations
 
 from torchrl_wbrm.modules.density_ratio import (
@@ -7,6 +7,7 @@ from torchrl_wbrm.modules.density_ratio import (
     BoundedRatio,
     DensityRatioNetwork,
 )
+from torchrl_wbrm.modules.features import PolynomialFeatures
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
@@ -32,6 +33,7 @@ __all__ = [
     "DensityRatioNetwork",
     "GreedyDiscreteMaximiser",
     "PARAMETERISATIONS",
+    "PolynomialFeatures",
     "SampledActionMaximiser",
     "make_deterministic_actor",
     "make_discrete_q_network",

@@ -14,7 +14,8 @@ optimiser (Adam, ``q.lr`` for critics, ``q.actor_lr`` for actors), batch size, s
 =========  ==================================================  ====================================================
 algo       loss                                                 reference
 =========  ==================================================  ====================================================
-``wbrm``   :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` the paper (``ratio.source=none``: unweighted BRM)
+``wbrm``   :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` the paper
+``brm``    ``WeightedBellmanLoss`` with w ≡ 1 (no stage 1)       the ablation: what the ratio buys
 ``bc``     torchrl ``BCLoss`` on S^e                            behaviour cloning of the expert
 ``td3bc``  torchrl ``TD3BCLoss`` (two Q networks)               Fujimoto & Gu 2021
 ``ddpg``   torchrl ``DDPGLoss``                                 Lillicrap et al. 2016
@@ -54,6 +55,7 @@ from torchrl.objectives import (
 
 from torchrl_wbrm.envs import make_lqr_env
 from torchrl_wbrm.modules import (
+    PolynomialFeatures,
     make_deterministic_actor,
     make_discrete_q_network,
     make_q_network,
@@ -199,9 +201,9 @@ def _bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upd
 
 
 # ---------------------------------------------------------------------- the paper and its references
-def build_wbrm(ctx: AlgoContext) -> Algo:
-    """WBRM stage 2: the ŵ-weighted Bellman residual with an actor as the maximiser (``ratio.source=none``: the
-    unweighted residual, the ablation); targets by ``SoftUpdate`` or residual gradient (``q.bootstrap``)."""
+def _bellman_residual(ctx: AlgoContext, *, weighted: bool) -> Algo:
+    """The Bellman-residual family of the paper (``wbrm``, ``brm``): Q by the (weighted) residual, an actor as the
+    maximiser, targets by ``SoftUpdate`` or residual gradient (``q.bootstrap``)."""
     qc = ctx.cfg.q
     value_network, actor = _q_network(ctx), _deterministic_actor(ctx)
     loss = WeightedBellmanLoss(
@@ -209,7 +211,7 @@ def build_wbrm(ctx: AlgoContext) -> Algo:
         actor_network=actor,
         residual=qc.residual,
         delay_value=qc.bootstrap == "target",
-        use_weights=ctx.cfg.ratio.source != "none",
+        use_weights=weighted,
         maximiser=qc.maximiser,
         action_spec=ctx.action_spec,
         num_action_samples=qc.num_action_samples,
@@ -229,8 +231,19 @@ def build_wbrm(ctx: AlgoContext) -> Algo:
         policy=actor,
         q_value=_q_reader(loss.value_network, loss.value_network_params),
         bellman_loss=loss,
-        uses_ratio=True,
+        uses_ratio=weighted,
     )
+
+
+def build_wbrm(ctx: AlgoContext) -> Algo:
+    """WBRM stage 2: the ŵ-weighted Bellman residual (``ratio.source=none``: weights ≡ 1, the same as ``brm``)."""
+    return _bellman_residual(ctx, weighted=ctx.cfg.ratio.source != "none")
+
+
+def build_brm(ctx: AlgoContext) -> Algo:
+    """Unweighted BRM: WBRM's stage 2 with w ≡ 1 and no stage 1, the ablation that isolates what the ratio buys
+    (identical networks, residual, bootstrap, actor and budget)."""
+    return _bellman_residual(ctx, weighted=False)
 
 
 def build_bc(ctx: AlgoContext) -> Algo:
@@ -498,9 +511,9 @@ def _mabo_adversary(ctx: AlgoContext, mc) -> TensorDictModule:
     if mc.adversary == "network":
         mlp = MLP(in_features=ctx.observation_dim + ctx.action_dim, out_features=1, num_cells=list(mc.critic_num_cells))
         return ValueOperator(mlp, in_keys=["observation", "action"], out_keys=["adversary_output"]).to(ctx.device)
-    # linear class on the fixed features (x, a, 1)
-    return TensorDictModule(lambda x, a: torch.cat([x, a, torch.ones_like(a[..., :1])], -1),
-                            in_keys=["observation", "action"], out_keys=["adversary_output"])
+    # the linear span of fixed polynomial features of (x, a)
+    return TensorDictModule(PolynomialFeatures(mc.features_degree), in_keys=["observation", "action"],
+                            out_keys=["adversary_output"])
 
 
 def build_mabo(ctx: AlgoContext) -> Algo:
@@ -543,6 +556,7 @@ def build_mabo(ctx: AlgoContext) -> Algo:
 
 ALGOS: dict[str, Callable[[AlgoContext], Algo]] = {
     "wbrm": build_wbrm,
+    "brm": build_brm,
     "bc": build_bc,
     "td3bc": build_td3bc,
     "ddpg": build_ddpg,

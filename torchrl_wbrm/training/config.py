@@ -229,17 +229,20 @@ class FQIConfig:
 @dataclass
 class MABOConfig:
     """MABO (Xie & Jiang 2020) with :class:`~torchrl_wbrm.objectives.MABOLoss`: the adversary class
-    (``"network"`` or ``"linear"`` on fixed features (x, a, 1)), its bound ``w_bound``, the L2 penalty ``critic_l2``,
-    the adversary's ``critic_lr`` and ``critic_num_cells``, ``critic_steps`` ascent steps per Q step, and
-    ``delay_value`` (frozen target Q rather than the paper's gradient through both Q terms)."""
+    (``"linear"``: the span of :class:`~torchrl_wbrm.modules.PolynomialFeatures` of degree ``features_degree``,
+    exact inner max; ``"network"``: ``B·tanh`` of an MLP trained by ascent), its bound ``w_bound``, the L2 penalty
+    ``critic_l2``, the adversary's ``critic_lr`` and ``critic_num_cells``, ``critic_steps`` ascent steps per Q step
+    (network only), and ``delay_value`` (frozen target Q, ``SoftUpdate``, rather than the paper's gradient through
+    both Q terms). Defaults: the variant that did least badly on LQR exp1 (configs/algo/mabo.yaml)."""
 
-    adversary: str = "network"
+    adversary: str = "linear"
+    features_degree: int = 2
     w_bound: float = 1.0
     critic_l2: float = 0.0
     critic_lr: float = 1e-3
     critic_num_cells: List[int] = field(default_factory=lambda: [256, 256])
     critic_steps: int = 1
-    delay_value: bool = False
+    delay_value: bool = True
 
 
 @dataclass
@@ -262,8 +265,8 @@ class WBRMConfig:
 
     Attributes:
         env: the environment and its data (group ``env``).
-        algo: ``"wbrm"`` (the two stages; with ``ratio.source=none`` the unweighted Bellman residual, the
-            ablation), ``"bc"`` (behaviour cloning of the expert's actions in S^e with torchrl's ``BCLoss``, a
+        algo: ``"wbrm"`` (the two stages), ``"brm"`` (stage 2 alone with w ≡ 1: the unweighted ablation; the
+            same as ``wbrm`` with ``ratio.source=none``), ``"bc"`` (behaviour cloning of the expert's actions in S^e with torchrl's ``BCLoss``, a
             reference: on LQR the expert is the optimum plus small noise) or a baseline on D: ``"td3bc"``,
             ``"ddpg"``, ``"cql"``, ``"iql"``, ``"dqn"``, ``"fqi"``, ``"mabo"`` (group ``algo``; see
             :mod:`torchrl_wbrm.training.algos`).
@@ -311,7 +314,7 @@ class MakeDatasetConfig:
 
 
 _CHOICES = {
-    "algo": ("wbrm", "bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"),
+    "algo": ("wbrm", "brm", "bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"),
     "baselines.mabo.adversary": ("network", "linear"),
     "ratio.source": ("learned", "exact", "none"),
     "ratio.divergence": ("basu", "kl"),
@@ -366,6 +369,8 @@ def validate_config(cfg) -> None:
             raise ValueError(f"{key} must be > 0, got {_get(cfg, key)!r}.")
     if not 0 < cfg.baselines.iql.expectile < 1:
         raise ValueError(f"baselines.iql.expectile must lie in (0, 1), got {cfg.baselines.iql.expectile}.")
+    if cfg.baselines.mabo.features_degree not in (1, 2):
+        raise ValueError(f"baselines.mabo.features_degree must be 1 or 2, got {cfg.baselines.mabo.features_degree!r}.")
     if not cfg.baselines.dqn.num_bins >= 2:
         raise ValueError(f"baselines.dqn.num_bins must be >= 2, got {cfg.baselines.dqn.num_bins}.")
     if cfg.ratio.source == "exact" and cfg.env.kind != "lqr":

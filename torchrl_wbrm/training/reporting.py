@@ -9,7 +9,7 @@ def summarise(results: dict) -> str:
     f = results.get("final", {})
     w = results.get("weights", {})
     algo = results.get("algo", "wbrm")
-    detail = f"ratio source: {results['ratio']['source']}" if algo == "wbrm" else "baseline"
+    detail = f"ratio source: {results['ratio']['source']}" if algo in ("wbrm", "brm") else "baseline"
     lines = [f"env {results['env']}  seed {results['seed']}  algo {algo} ({detail})"]
     if "regret" in f:
         lines += [

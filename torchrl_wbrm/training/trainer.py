@@ -432,7 +432,7 @@ class WBRMTrainer:
             "final": final[-1] if final else {},
             "weights": self.weight_stats,
             "ratio": {
-                "source": self.cfg.ratio.source,
+                "source": self.cfg.ratio.source if self.algo.uses_ratio else "none",
                 "best_held_out_loss": self.ratio_best["loss"] if self.ratio_network is not None else None,
                 "best_step": self.ratio_best.get("step") if self.ratio_network is not None else None,
                 "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
