@@ -3,6 +3,11 @@
     python recipes/paper_tables.py                    # all algorithms x {LQR exp1-3, MountainCar} x 5 seeds
     python recipes/paper_tables.py --quick            # a smoke version (CI)
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
+    python recipes/paper_tables.py --report-only      # rebuild tables.md and paper_tables.png from finished runs
+
+The table budget (``TABLE_BUDGET``, the same for every algorithm, to fit the whole grid in an hour on 2 cores):
+2×128 networks and 2,000 steps (the main recipe's default is 2×256 and 3,000), CQL with 4 random actions per state
+(torchrl's default 10 made CQL alone take half the hour). Everything else is ``configs/wbrm_offline.yaml``.
 
 It launches one Hydra multirun of ``recipes/wbrm_offline.py`` per environment through the local joblib launcher
 (``algo=...`` x ``seed=...``; every algorithm sees the same data for a given seed, collected once into a
@@ -14,7 +19,9 @@ mean(Q̂ − Q*) on behaviour and expert data, and Table 3 (MountainCar: mean re
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import time
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +34,10 @@ PAPER_TABLE_2 = {  # Table 2 of the paper (one run each, no error bars)
     "wbrm": (86.65, 86.74, 87.10),
 }
 PAPER_TABLE_3 = {"dqn": 94.67, "ddpg": 95.29, "mabo": 94.78, "wbrm": 95.51}
+TABLE_BUDGET = [
+    "q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000", "q.eval_every=1000",
+    "eval.train_episodes=200", "baselines.cql.num_random=4",
+]
 QUICK = [
     "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
     "env.mountain_car_data.expert_transitions=300", "env.mountain_car_data.behaviour_transitions=1200",
@@ -40,9 +51,10 @@ def available_algos() -> list[str]:
     return sorted(p.stem for p in (ROOT / "configs" / "algo").glob("*.yaml"))
 
 
-def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: list[str]) -> None:
-    if env == "mountain_car":  # the paper's 100 evaluation episodes (2 in the smoke version)
-        extra = [o for o in extra if not o.startswith("eval.episodes=")] + [f"eval.episodes={2 if extra else 100}"]
+def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: list[str], quick: bool) -> None:
+    if env == "mountain_car":  # the paper's 100 evaluation episodes (2 in the smoke version); 5 at training time
+        extra = [o for o in extra if not o.startswith(("eval.episodes=", "eval.train_episodes="))]
+        extra += [f"eval.episodes={2 if quick else 100}", f"eval.train_episodes={1 if quick else 5}"]
     cmd = [
         sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m",
         "hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}", "threads=1",
@@ -108,9 +120,54 @@ def tables(out: Path) -> str:
             paper = f"{PAPER_TABLE_3[a]:.2f}" if a in PAPER_TABLE_3 else "–"
             lines.append(f"| {a} | {cell(a, 'mountain_car', 'final.return', 2)} | {paper} |")
         parts.append("### Table 3 (MountainCarContinuous-v0)\n\n" + "\n".join(lines))
+    envs = lqr_envs + (["mountain_car"] if any(env == "mountain_car" for _, env in by) else [])
+    lines = ["| algorithm | " + " | ".join(envs) + " |", "|" + "---|" * (len(envs) + 1)]
+    for a in algos:
+        lines.append(f"| {a} | " + " | ".join(cell(a, e, "wall_seconds", 0) for e in envs) + " |")
+    parts.append("### Cost: wall seconds per run (one torch thread, two runs at a time)\n\n" + "\n".join(lines))
     seeds = sorted({r["seed"] for r in records})
-    parts.append(f"Seeds: {seeds}. Paper figures are single runs without error bars.")
+    timing = out / "wall_seconds.json"
+    total = f" The whole grid took {json.loads(timing.read_text())['wall_seconds'] / 60:.1f} min." if timing.is_file() else ""
+    parts.append(f"Seeds: {seeds}. Paper figures are single runs without error bars.{total}")
     return "\n\n".join(parts)
+
+
+def plot(out: Path) -> Path:
+    """``paper_tables.png``: LQR paired regret (log scale) and MountainCar return per algorithm, mean ± 95% CI."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.reporting import load_results
+
+    records = load_results(out)
+    envs = [e for e in ("lqr_exp1", "lqr_exp2", "lqr_exp3", "mountain_car") if any(r["env"] == e for r in records)]
+    algos = sorted({r.get("algo", "wbrm") for r in records})
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 0.35 * len(algos) + 1.8), squeeze=False)
+    for ax, env in zip(axes[0], envs):
+        key = "return" if env == "mountain_car" else "regret"
+        for i, algo in enumerate(algos):
+            vals = [r["final"][key] for r in records if r["env"] == env and r.get("algo", "wbrm") == algo]
+            if not vals:
+                continue
+            ci = mean_ci(vals)
+            err = ci.half_width if len(vals) > 1 else 0.0
+            if key == "regret":  # log axis: the lower whisker stops above zero
+                ax.errorbar([max(ci.mean, 1e-4)], [i], xerr=[[min(err, max(ci.mean - 1e-4, 0.0))], [err]], fmt="o", capsize=3)
+            else:
+                ax.errorbar([ci.mean], [i], xerr=[err], fmt="o", capsize=3)
+        if key == "regret":
+            ax.set_xscale("log")
+        ax.set_title(f"{env}: {'return (100 episodes)' if key == 'return' else 'paired regret'}", fontsize=10)
+        ax.set_yticks(range(len(algos)), algos)
+    fig.suptitle("mean ± 95% CI over seeds (LQR: regret against the exact optimum)", fontsize=10)
+    fig.tight_layout()
+    path = out / "paper_tables.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def main() -> None:
@@ -129,10 +186,15 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (configs/algo/).")
     if not args.report_only:
+        start = time.perf_counter()
         for env in args.envs:
-            launch(env, algos, 1 if args.quick else args.seeds, out, args.jobs, QUICK if args.quick else [])
+            launch(env, algos, 1 if args.quick else args.seeds, out, args.jobs, QUICK if args.quick else TABLE_BUDGET,
+                   args.quick)
+        (out / "wall_seconds.json").write_text(json.dumps({"wall_seconds": time.perf_counter() - start,
+                                                           "envs": args.envs, "algos": algos, "seeds": args.seeds}))
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
+    plot(out)
     print(text)
 
 

@@ -179,6 +179,33 @@ def test_mountain_car_dataset_shape():
     assert "behaviour_mean_return" in ds.metadata
 
 
+def test_mountain_car_dataset_on_parallel_cars():
+    ds = make_mountain_car_datasets(
+        MountainCarDataConfig(expert_transitions=4000, behaviour_transitions=8000, ratio_fraction=0.3, parallel_envs=4),
+        seed=1,
+    )
+    assert ds.metadata["data_config"]["parallel_envs"] == 4
+    assert ds.sizes()["expert_samples"] == 4000
+    assert ds.sizes()["transitions"] + ds.sizes()["behaviour_samples"] == 8000
+    d, b = ds.transitions[:], ds.behaviour_samples[:]
+    assert not set(d["episode"].tolist()) & set(b["episode"].tolist())
+    # every episode id is one car's run: within an id, transitions chain in time and only the last may be done
+    order = torch.argsort(d["episode"], stable=True)
+    d = d[order]
+    same = d["episode"][1:] == d["episode"][:-1]
+    assert (d["next", "observation"][:-1][same] == d["observation"][1:][same]).all()
+    assert not d["next", "done"][:-1].squeeze(-1)[same].any()
+    # random episodes (truncated at 999 steps, about -33) and expert ones (about 93) are both in the behaviour data
+    returns = episode_returns(d)
+    assert (returns < 0).any() and (returns > 90).any()
+    assert 90 < ds.metadata["expert_mean_return"] < 96
+
+
+def test_mountain_car_parallel_envs_must_be_positive():
+    with pytest.raises(ValueError, match="parallel_envs must be a positive integer"):
+        make_mountain_car_datasets(MountainCarDataConfig(parallel_envs=0))
+
+
 def test_cached_datasets_are_reused_and_keyed_by_config(tmp_path):
     from torchrl_wbrm.data import EnvConfig, cached_offline_datasets
 

@@ -5,12 +5,14 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_wbrm.envs import LQREnv
 from torchrl_wbrm.evaluation import (
     FiniteHorizonLQRPolicy,
     bootstrap_ci,
+    discounted_returns,
     effective_sample_size,
     evaluate_returns,
     lqr_paired_regret,
@@ -86,3 +88,23 @@ def test_evaluate_returns_on_mountain_car():
     env = make_mountain_car_env()
     res = evaluate_returns(env, make_mountain_car_expert(power=0.3, tau=0.0), episodes=2, seed=0)
     assert res.mean > 95 and res.n == 2
+
+
+def test_discounted_returns_stop_at_each_episodes_done():
+    reward = torch.tensor([[1.0, 2.0, 4.0, 8.0], [1.0, 1.0, 1.0, 1.0]]).unsqueeze(-1)
+    done = torch.tensor([[False, True, True, True], [False, False, False, True]]).unsqueeze(-1)
+    rollout = TensorDict({"next": {"reward": reward, "done": done}}, batch_size=[2, 4])
+    expected = torch.tensor([1 + 1.0, 1 + 0.5 + 0.25 + 0.125], dtype=torch.float64)  # nothing after the first done
+    torch.testing.assert_close(discounted_returns(rollout, 0.5), expected)
+    no_done = TensorDict({"next": {"reward": reward}}, batch_size=[2, 4])
+    assert discounted_returns(no_done, 1.0).tolist() == [15.0, 4.0]
+
+
+def test_evaluate_returns_on_batched_mountain_car_counts_each_episode_once():
+    """Cars finish at different steps; a finished car's repeated last transition (+100) must not count again."""
+    episodes = 20
+    policy = make_mountain_car_expert(power=0.3, tau=0.0)
+    res = evaluate_returns(make_mountain_car_env(batch_size=[episodes]), policy, episodes=episodes, seed=0)
+    assert res.n == episodes and 97 < res.mean < 100  # each return is 100 - 0.009 * length
+    one_by_one = evaluate_returns(make_mountain_car_env(), policy, episodes=3, seed=0)
+    assert abs(res.mean - one_by_one.mean) < 0.5

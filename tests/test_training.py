@@ -193,3 +193,11 @@ def test_ratio_gradient_clipping_bounds_the_step(tmp_path):
     clipped, free = first_step_change(1e-3), first_step_change(None)
     assert clipped <= 1e-3 + 1e-9  # SGD with lr 1: the step is the clipped gradient, norm <= 1e-3
     assert free > 10 * clipped
+
+
+def test_summarise_a_method_without_a_q_network():
+    from torchrl_wbrm.training.reporting import summarise
+
+    final = {"return": 85.44, "return_ci": 0.1, "optimal_return_exact": 85.4351, "regret": 0.003, "regret_ci": 0.001}
+    text = summarise({"env": "lqr_exp1", "seed": 0, "algo": "bc", "final": final, "ratio": {"source": "none"}})
+    assert "paired regret 0.0030" in text and "Q̂ error" not in text and "baseline" in text

@@ -40,9 +40,18 @@ class FiniteHorizonLQRPolicy(nn.Module):
 
 
 def discounted_returns(rollout: TensorDictBase, gamma: float) -> torch.Tensor:
-    """``sum_t gamma^t r_t`` along the last batch dimension of a ``[*, T]`` rollout (float64)."""
+    """``sum_t gamma^t r_t`` along the last batch dimension of a ``[*, T]`` rollout (float64), up to each episode's end.
+
+    Steps after an episode's first ``("next", "done")`` do not count: in a batched rollout with
+    ``break_when_all_done=True`` an env that is done early is frozen and torchrl repeats its last transition (reward
+    included) until all are done; with auto-reset they would belong to the next episode.
+    """
     reward = rollout.get(("next", "reward")).squeeze(-1).double()
     discount = torch.as_tensor(gamma, dtype=torch.float64) ** torch.arange(reward.shape[-1], dtype=torch.float64)
+    done = rollout.get(("next", "done"), None)
+    if done is not None:
+        done = done.reshape(reward.shape).long()
+        reward = torch.where(done.cumsum(-1) - done > 0, torch.zeros_like(reward), reward)  # a done before t
     return (reward * discount).sum(-1)
 
 

@@ -9,6 +9,10 @@ without noise reaches about 97.7 (DESIGN.md).
 
 Behaviour: "random actions plus expert episodes". :func:`make_mountain_car_random_policy` draws uniform actions
 in the action spec; the data layer mixes whole episodes of it with expert episodes.
+
+Env: :func:`make_mountain_car_env` builds the torch-native, batched copy of gym's env
+(:class:`~torchrl_wbrm.envs.MountainCarContinuousEnv`); :func:`make_mountain_car_gym_env` builds gym's own, through
+torchrl's ``GymEnv`` (one car at a time, far slower).
 """
 from __future__ import annotations
 
@@ -17,13 +21,34 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
-__all__ = ["MountainCarHeuristic", "make_mountain_car_expert", "make_mountain_car_random_policy", "make_mountain_car_env"]
+from torchrl_wbrm.envs.mountain_car import MountainCarContinuousEnv
+
+__all__ = [
+    "MountainCarHeuristic",
+    "make_mountain_car_expert",
+    "make_mountain_car_random_policy",
+    "make_mountain_car_env",
+    "make_mountain_car_gym_env",
+]
 
 ENV_NAME = "MountainCarContinuous-v0"
 
 
-def make_mountain_car_env(*, seed: int | None = None, device=None):
-    """``GymEnv("MountainCarContinuous-v0")`` (999-step episodes, +100 at the goal, -0.1 a^2 per step)."""
+def make_mountain_car_env(*, seed: int | None = None, device=None, batch_size=None):
+    """The torch-native, batched ``MountainCarContinuous-v0``
+    (:class:`~torchrl_wbrm.envs.MountainCarContinuousEnv`: gym's dynamics, 999-step episodes, +100 at the goal,
+    -0.1 a^2 per step).
+
+    Args:
+        seed: seed of the env's generator (initial positions); ``None``: 0.
+        device: torch device.
+        batch_size: cars stepped together (``[N]`` runs ``N`` episodes at once); ``None``: ``[]``, one car, as gym.
+    """
+    return MountainCarContinuousEnv(batch_size=() if batch_size is None else batch_size, device=device, seed=seed)
+
+
+def make_mountain_car_gym_env(*, seed: int | None = None, device=None):
+    """``GymEnv("MountainCarContinuous-v0")``: gymnasium itself (one car; the reference the torch env reproduces)."""
     from torchrl.envs import GymEnv
 
     env = GymEnv(ENV_NAME, device=device)

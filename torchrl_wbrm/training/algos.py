@@ -40,6 +40,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
+from torchrl.envs import ActionDiscretizer, Compose, TransformedEnv
 from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import (
     BCLoss,
@@ -54,6 +55,7 @@ from torchrl.objectives import (
 )
 
 from torchrl_wbrm.envs import make_lqr_env
+from torchrl_wbrm.policies import make_mountain_car_env
 from torchrl_wbrm.modules import (
     PolynomialFeatures,
     make_deterministic_actor,
@@ -418,9 +420,17 @@ class ActionGrid(nn.Module):
 
     @classmethod
     def from_lqr_env(cls, lqr_config, num_bins: int) -> "ActionGrid":
-        env = make_lqr_env(lqr_config, discretize_actions=num_bins)
-        _ = env.action_spec  # the transform builds its grid from the parent's spec
-        return cls(env.transform[-1].intervals.detach().clone().float())
+        return cls.from_env(make_lqr_env(lqr_config).base_env, num_bins)
+
+    @classmethod
+    def from_env(cls, env, num_bins: int) -> "ActionGrid":
+        """The grid of torchrl's ``ActionDiscretizer(num_bins)`` (bin medians) on ``env``'s bounded action spec."""
+        discretised = TransformedEnv(env, ActionDiscretizer(int(num_bins), categorical=True,
+                                                            sampling=ActionDiscretizer.SamplingStrategy.MEDIAN))
+        _ = discretised.action_spec  # the transform builds its grid from the parent's spec
+        transform = discretised.transform
+        transform = transform[-1] if isinstance(transform, Compose) else transform
+        return cls(transform.intervals.detach().clone().float().reshape(-1, int(num_bins)))
 
     @property
     def num_actions(self) -> int:
@@ -439,7 +449,7 @@ class ActionGrid(nn.Module):
 
 def build_dqn(ctx: AlgoContext) -> Algo:
     """DQN (V. Mnih et al., "Human-level control through deep reinforcement learning", Nature 2015), offline, on the
-    discretised action box (LQR only).
+    discretised action box (LQR: ``num_bins ** 2`` joint actions; MountainCar: ``num_bins``).
 
     torchrl's ``DQNLoss`` on a Q head over the ``num_bins ** m`` joint actions of :class:`ActionGrid` (categorical
     indices). The dataset's continuous actions are snapped to the nearest grid point once, before they enter the
@@ -448,10 +458,12 @@ def build_dqn(ctx: AlgoContext) -> Algo:
     scored at the grid point nearest to each evaluation action.
     """
     cfg = ctx.cfg
-    if cfg.env.kind != "lqr":
-        raise NotImplementedError(f"algo='dqn' discretises the LQR action box; env.kind={cfg.env.kind!r} is not supported.")
     qc, dc = cfg.q, cfg.baselines.dqn
-    grid = ActionGrid.from_lqr_env(cfg.env.lqr, dc.num_bins).to(ctx.device)
+    if cfg.env.kind == "lqr":
+        grid = ActionGrid.from_lqr_env(cfg.env.lqr, dc.num_bins)
+    else:
+        grid = ActionGrid.from_env(make_mountain_car_env(), dc.num_bins)
+    grid = grid.to(ctx.device)
     q_head = make_discrete_q_network(ctx.observation_dim, grid.num_actions, action_space="categorical",
                                      num_cells=qc.num_cells, initial_bias=ctx.q_initial_bias).to(ctx.device)
     loss = DQNLoss(q_head, loss_function=dc.loss_function, delay_value=True)

@@ -15,9 +15,12 @@ def summarise(results: dict) -> str:
         lines += [
             f"return        {f['return']:.4f} ± {f['return_ci']:.4f}   (exact optimum {f['optimal_return_exact']:.4f})",
             f"paired regret {f['regret']:.4f} ± {f['regret_ci']:.4f}",
-            f"Q̂ error / spread of Q*: expert {100 * f['q_error_expert']:.1f}%  behaviour {100 * f['q_error_behaviour']:.1f}%"
-            f"   bias on expert {f['q_bias_expert']:+.3f}",
         ]
+        if "q_error_expert" in f:  # methods without a Q network (bc) have none
+            lines.append(
+                f"Q̂ error / spread of Q*: expert {100 * f['q_error_expert']:.1f}%  behaviour {100 * f['q_error_behaviour']:.1f}%"
+                f"   bias on expert {f['q_bias_expert']:+.3f}"
+            )
     elif "return" in f:
         lines.append(f"return {f['return']:.2f} ± {f['return_ci']:.2f} over the evaluation episodes")
     if w:

@@ -218,8 +218,8 @@ class WBRMTrainer:
                     "observation", "action"
                 )
             self.true_ratio = lqr_true_density_ratio(env, expert, behaviour)
-        else:
-            self.mc_env = make_mountain_car_env()
+        else:  # batched evaluation envs, one car per episode, built on first use (one per episode count)
+            self.mc_envs: dict[int, object] = {}
 
     # ------------------------------------------------------------------ the shared loop
     def _run_stage(
@@ -378,7 +378,9 @@ class WBRMTrainer:
                 out[f"q_mean_{name}"] = q_hat.double().mean().item()
                 out[f"q_star_mean_{name}"] = errs["q_true_mean"]
         else:
-            res = evaluate_returns(self.mc_env, self.actor, episodes=episodes, seed=ec.seed)
+            if episodes not in self.mc_envs:
+                self.mc_envs[episodes] = make_mountain_car_env(batch_size=[episodes])
+            res = evaluate_returns(self.mc_envs[episodes], self.actor, episodes=episodes, seed=ec.seed)
             out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
         if self.algo.bellman_loss is not None:
             held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
