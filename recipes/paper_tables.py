@@ -51,13 +51,15 @@ def available_algos() -> list[str]:
     return sorted(p.stem for p in (ROOT / "configs" / "algo").glob("*.yaml"))
 
 
-def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: list[str], quick: bool) -> None:
+def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: list[str], quick: bool,
+           launcher: str = "joblib", launcher_args: list[str] = ()) -> None:
     if env == "mountain_car":  # the paper's 100 evaluation episodes (2 in the smoke version); 5 at training time
         extra = [o for o in extra if not o.startswith(("eval.episodes=", "eval.train_episodes="))]
         extra += [f"eval.episodes={2 if quick else 100}", f"eval.train_episodes={1 if quick else 5}"]
     cmd = [
         sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m",
-        "hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}", "threads=1",
+        f"hydra/launcher={launcher}", *([f"hydra.launcher.n_jobs={jobs}"] if launcher == "joblib" else []),
+        *launcher_args, "threads=1",
         f"env={env}", f"algo={','.join(algos)}", f"seed={','.join(str(s) for s in range(seeds))}",
         "logger=none", "plots=false", "checkpoint_every=0", f"data_cache={out / 'data_cache'}",
         f"hydra.sweep.dir={out / env}", "hydra.sweep.subdir=${algo}_seed${seed}",
@@ -175,7 +177,11 @@ def main() -> None:
     parser.add_argument("--algos", nargs="+", default=None, help=f"default: all of configs/algo ({available_algos()})")
     parser.add_argument("--envs", nargs="+", default=["lqr_exp1", "lqr_exp2", "lqr_exp3", "mountain_car"])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--jobs", type=int, default=2, help="parallel runs of the joblib launcher")
+    parser.add_argument("--launcher", default="joblib",
+                        help="Hydra launcher: joblib (local), submitit_local, submitit_slurm, ray (pip install -e '.[sweeps]')")
+    parser.add_argument("--launcher-args", nargs="*", default=[],
+                        help="launcher overrides, e.g. hydra.launcher.partition=cpu hydra.launcher.timeout_min=30")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default="results/paper_tables")
     parser.add_argument("--report-only", action="store_true", help="only rebuild tables.md from finished runs")
@@ -189,7 +195,7 @@ def main() -> None:
         start = time.perf_counter()
         for env in args.envs:
             launch(env, algos, 1 if args.quick else args.seeds, out, args.jobs, QUICK if args.quick else TABLE_BUDGET,
-                   args.quick)
+                   args.quick, args.launcher, args.launcher_args)
         (out / "wall_seconds.json").write_text(json.dumps({"wall_seconds": time.perf_counter() - start,
                                                            "envs": args.envs, "algos": algos, "seeds": args.seeds}))
     text = tables(out)

@@ -103,21 +103,6 @@ def build_cells(quick: bool) -> list[dict]:
     return cells
 
 
-def cell_dir(out: Path, cell: dict, seed: int) -> Path:
-    name = f"{cell['block']}/{cell['env']}/{cell['setting']}/{cell['method']}".replace(" ", "_")
-    return out / name / f"seed{seed}"
-
-
-def run_one(cell: dict, seed: int, budget: list[str], out: str) -> str:
-    """Run one (cell, seed) with one torch thread; skipped if its results exist."""
-    from torchrl_wbrm.training.runs import run_overrides
-
-    run_dir = cell_dir(Path(out), cell, seed)
-    labels = {"study": {k: cell[k] for k in ("block", "env", "setting", "method")}}
-    run_overrides([*budget, *cell["overrides"], f"seed={seed}"], run_dir, extra_results=labels)
-    return str(run_dir)
-
-
 def tables(out: Path) -> str:
     from torchrl_wbrm.training.reporting import load_results, results_table
 
@@ -212,14 +197,9 @@ def main() -> None:
     cells = build_cells(args.quick)
     seeds = range(1 if args.quick else args.seeds)
     budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
-    jobs = [(cell, seed) for cell in cells for seed in seeds]
-    print(f"{len(jobs)} runs ({len(cells)} cells x {len(seeds)} seeds) into {out}")
-    from joblib import Parallel, delayed
-    from tqdm.auto import tqdm
+    from torchrl_wbrm.training.runs import run_cells
 
-    runner = Parallel(n_jobs=args.jobs, return_as="generator_unordered")
-    for _ in tqdm(runner(delayed(run_one)(cell, seed, budget, str(out)) for cell, seed in jobs), total=len(jobs)):
-        pass
+    run_cells(cells, seeds, budget, out, jobs=args.jobs)
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
     plot(out)

@@ -157,3 +157,20 @@ def test_paper_tables_quick(tmp_path):
     assert "Table 2 (LQR)" in tables and "Table 3 (MountainCarContinuous-v0)" in tables
     assert "| td3bc |" in tables and "| wbrm |" in tables and "85.435" in tables  # the exact optimum row
     assert len(list((tmp_path / "data_cache").iterdir())) == 2  # one collection per env and seed, shared
+    assert (tmp_path / "paper_tables.png").is_file() and (tmp_path / "wall_seconds.json").is_file()
+    assert "| brm |" not in tables and "### Cost" in tables
+
+
+def test_ablations_quick(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "ablations.py"), "--quick", "--jobs", "1", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    tables = (tmp_path / "tables.md").read_text()
+    # the default run appears in every block; the KL setting in its own; BRM beside WBRM for behaviour noise
+    for block in ("residual x bootstrap", "ratio divergence", "expert noise τ", "expert data size m", "behaviour noise"):
+        assert f"### {block} (LQR exp1)" in tables
+    assert "| KL (α → 0) | wbrm | 1 |" in tables and "| σ_b=0.5 (default) | brm | 1 |" in tables
+    assert len(list(tmp_path.rglob("results.json"))) == 3  # default wbrm, default brm, KL: the default ran once
