@@ -5,7 +5,7 @@ import json
 import os
 from pathlib import Path
 
-__all__ = ["run_overrides"]
+__all__ = ["cell_dir", "run_cell", "run_cells", "run_overrides"]
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
@@ -36,3 +36,30 @@ def run_overrides(
     results.update(extra_results or {})
     done.write_text(json.dumps(results, indent=2, default=float))
     return results
+
+
+def cell_dir(out: str | os.PathLike, cell: dict, seed: int, *, labels=("block", "env", "setting", "method")) -> Path:
+    """``out/<block>/<env>/<setting>/<method>/seed<seed>``: where one study cell's run for one seed lives."""
+    name = "/".join(str(cell[k]) for k in labels).replace(" ", "_")
+    return Path(out) / name / f"seed{seed}"
+
+
+def run_cell(cell: dict, seed: int, budget: list[str], out: str, labels=("block", "env", "setting", "method")) -> str:
+    """Run one study cell (``cell["overrides"]`` after ``budget``) for one seed; its labels go into the results
+    under ``"study"``. Skipped if its results exist."""
+    run_dir = cell_dir(out, cell, seed, labels=labels)
+    run_overrides([*budget, *cell["overrides"], f"seed={seed}"], run_dir,
+                  extra_results={"study": {k: cell[k] for k in labels}})
+    return str(run_dir)
+
+
+def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLike, *, jobs: int = 2) -> None:
+    """Every (cell, seed) in ``jobs`` parallel processes (one torch thread each), with a tqdm bar."""
+    from joblib import Parallel, delayed
+    from tqdm.auto import tqdm
+
+    work = [(cell, seed) for cell in cells for seed in seeds]
+    print(f"{len(work)} runs ({len(cells)} cells x {len(list(seeds))} seeds) into {out}", flush=True)
+    runner = Parallel(n_jobs=jobs, return_as="generator_unordered")
+    for _ in tqdm(runner(delayed(run_cell)(cell, seed, budget, str(out)) for cell, seed in work), total=len(work)):
+        pass
