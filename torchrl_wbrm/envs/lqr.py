@@ -33,8 +33,9 @@ from typing import Sequence
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
+from torchrl.data import Bounded, Composite, Unbounded
+
+from torchrl_wbrm.envs._batched import BatchedEpisodicEnv
 
 __all__ = ["LQRConfig", "LQREnv", "LinearGaussianDensityRatio", "PAPER_EXPERIMENTS", "REWARD_CAP_87_84"]
 
@@ -177,7 +178,7 @@ def _expected_clip_excess(C: np.ndarray, offset: float, noise_std: float, n_quad
     return float(vals.mean())
 
 
-class LQREnv(EnvBase):
+class LQREnv(BatchedEpisodicEnv):
     """A batched linear-quadratic system (Section 5.1 of the paper) as a TorchRL environment.
 
     Args:
@@ -208,8 +209,6 @@ class LQREnv(EnvBase):
         88.165
     """
 
-    batch_locked = True
-
     def __init__(
         self,
         experiment: str | LQRConfig = "exp1",
@@ -229,9 +228,7 @@ class LQREnv(EnvBase):
             config = experiment
         else:
             raise TypeError(f"experiment must be a str or an LQRConfig, got {type(experiment).__name__}.")
-        if isinstance(batch_size, int):
-            batch_size = (batch_size,)
-        super().__init__(device=device, batch_size=torch.Size(batch_size))
+        super().__init__(batch_size=batch_size, device=device, seed=seed)
         self.config = config
         self._dtype = dtype
         mats = config.matrices()
@@ -239,9 +236,6 @@ class LQREnv(EnvBase):
         for name, value in mats.items():
             self.register_buffer(f"_{name}", torch.as_tensor(value, dtype=dtype, device=self.device))
         self._make_specs()
-        self.rng = torch.Generator(device=self.device)
-        self._step_count = torch.zeros(*self.batch_size, 1, dtype=torch.int64, device=self.device)
-        self._set_seed(0 if seed is None else seed)
 
     # ------------------------------------------------------------------ specs and dynamics
     def _make_specs(self) -> None:
@@ -252,15 +246,7 @@ class LQREnv(EnvBase):
         )
         self.action_spec = Bounded(low=-bound, high=bound, shape=(*bs, m), dtype=self._dtype, device=self.device)
         self.reward_spec = Unbounded(shape=(*bs, 1), dtype=self._dtype, device=self.device)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            truncated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            shape=bs,
-        )
-
-    def _set_seed(self, seed: int | None) -> None:
-        self.rng.manual_seed(int(seed) if seed is not None else torch.seed())
+        self._make_done_spec()
 
     def _randn(self, *shape) -> torch.Tensor:
         return torch.randn(*shape, generator=self.rng, device=self.device, dtype=self._dtype)
@@ -268,20 +254,7 @@ class LQREnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         d = self.config.state_dim
         obs = self.config.initial_std * self._randn(*self.batch_size, d)
-        reset_mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
-            reset_mask = tensordict.get("_reset").reshape(*self.batch_size, 1)
-        if reset_mask is not None and tensordict.get("observation", None) is not None:
-            obs = torch.where(reset_mask, obs, tensordict.get("observation"))
-            self._step_count = torch.where(reset_mask, torch.zeros_like(self._step_count), self._step_count)
-        else:
-            self._step_count = torch.zeros_like(self._step_count)
-        false = torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device)
-        return TensorDict(
-            {"observation": obs, "done": false, "terminated": false.clone(), "truncated": false.clone()},
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        return self._start_episodes(tensordict, obs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         x = tensordict.get("observation")

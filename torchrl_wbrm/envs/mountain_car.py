@@ -23,22 +23,18 @@ promotion), so the two round differently and long open-loop trajectories drift a
 """
 from __future__ import annotations
 
-import numbers
 from typing import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
+from torchrl.data import Bounded, Composite, Unbounded
+
+from torchrl_wbrm.envs._batched import BatchedEpisodicEnv, is_int
 
 __all__ = ["MountainCarContinuousEnv"]
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-class MountainCarContinuousEnv(EnvBase):
+class MountainCarContinuousEnv(BatchedEpisodicEnv):
     """Batched, torch-native ``MountainCarContinuous-v0`` (gymnasium's dynamics, reward and 999-step limit).
 
     Keyword Args:
@@ -83,8 +79,6 @@ class MountainCarContinuousEnv(EnvBase):
     RESET_HIGH = -0.4
     MAX_EPISODE_STEPS = 999
 
-    batch_locked = True
-
     def __init__(
         self,
         *,
@@ -93,18 +87,9 @@ class MountainCarContinuousEnv(EnvBase):
         seed: int | None = None,
         max_episode_steps: int = MAX_EPISODE_STEPS,
     ):
-        if _is_int(batch_size):
-            batch_size = (batch_size,)
-        if not isinstance(batch_size, Sequence) or not all(_is_int(n) for n in batch_size):
-            raise TypeError(f"batch_size must be an int or a sequence of ints, got {batch_size!r}.")
-        if any(n < 1 for n in batch_size):
-            raise ValueError(f"batch_size must hold positive sizes, got {tuple(batch_size)}.")
-        if not _is_int(max_episode_steps) or max_episode_steps < 1:
+        if not is_int(max_episode_steps) or max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be a positive integer, got {max_episode_steps!r}.")
-        if seed is not None and not _is_int(seed):
-            raise TypeError(f"seed must be an int or None, got {seed!r}.")
-        batch_size = torch.Size([int(n) for n in batch_size])
-        super().__init__(device=device, batch_size=batch_size)
+        super().__init__(batch_size=batch_size, device=device, seed=seed)
         self.max_episode_steps = int(max_episode_steps)
         self._make_specs()
         self.register_buffer(
@@ -112,11 +97,6 @@ class MountainCarContinuousEnv(EnvBase):
             torch.tensor([self.GOAL_POSITION, self.GOAL_VELOCITY], dtype=torch.float32, device=self.device),
             persistent=False,
         )
-        self.rng = torch.Generator(device=self.device)
-        self.register_buffer(
-            "_step_count", torch.zeros(*self.batch_size, 1, dtype=torch.int64, device=self.device), persistent=False
-        )
-        self._set_seed(0 if seed is None else seed)
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
@@ -137,41 +117,15 @@ class MountainCarContinuousEnv(EnvBase):
             low=self.MIN_ACTION, high=self.MAX_ACTION, shape=(*bs, 1), dtype=torch.float32, device=self.device
         )
         self.reward_spec = Unbounded(shape=(*bs, 1), dtype=torch.float32, device=self.device)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            truncated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            shape=bs,
-        )
+        self._make_done_spec()
 
-    # ------------------------------------------------------------------ seeding, reset and step
-    def _set_seed(self, seed: int | None) -> None:
-        self.rng.manual_seed(int(seed) if seed is not None else torch.seed())
-
-    def _mask(self, tensordict: TensorDictBase | None, key: str) -> torch.Tensor | None:
-        if tensordict is None:
-            return None
-        mask = tensordict.get(key, None)
-        return None if mask is None else mask.reshape(*self.batch_size, 1)
-
+    # ------------------------------------------------------------------ reset and step
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         bs = self.batch_size
         u = torch.rand(*bs, 1, generator=self.rng, dtype=torch.float64, device=self.device)
         position = self.RESET_LOW + (self.RESET_HIGH - self.RESET_LOW) * u
         obs = torch.cat([position, torch.zeros_like(position)], -1).to(torch.float32)
-        reset_mask = self._mask(tensordict, "_reset")
-        previous = None if tensordict is None else tensordict.get("observation", None)
-        if reset_mask is not None and previous is not None:
-            obs = torch.where(reset_mask, obs, previous)
-            self._step_count = torch.where(reset_mask, torch.zeros_like(self._step_count), self._step_count)
-        else:  # a full reset (or a masked one without the previous state: everything restarts)
-            self._step_count = torch.zeros_like(self._step_count)
-        false = torch.zeros(*bs, 1, dtype=torch.bool, device=self.device)
-        return TensorDict(
-            {"observation": obs, "done": false, "terminated": false.clone(), "truncated": false.clone()},
-            batch_size=bs,
-            device=self.device,
-        )
+        return self._start_episodes(tensordict, obs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get("observation")
