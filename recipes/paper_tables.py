@@ -70,8 +70,7 @@ def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: 
 
 
 def tables(out: Path) -> str:
-    from torchrl_wbrm.evaluation import mean_ci
-    from torchrl_wbrm.training.reporting import load_results
+    from torchrl_wbrm.training.reporting import ci_cell, load_results
 
     records = load_results(out)
     by = {}
@@ -81,19 +80,7 @@ def tables(out: Path) -> str:
     lqr_envs = [e for e in ("lqr_exp1", "lqr_exp2", "lqr_exp3") if any(env == e for _, env in by)]
 
     def cell(algo, env, path, digits=3):
-        vals = []
-        for r in by.get((algo, env), []):
-            node = r
-            for part in path.split("."):
-                node = node.get(part, {}) if isinstance(node, dict) else {}
-            if isinstance(node, (int, float)):
-                vals.append(float(node))
-        if not vals:
-            return "–"
-        if len(vals) == 1:
-            return f"{vals[0]:.{digits}f}"
-        ci = mean_ci(vals)
-        return f"{ci.mean:.{digits}f} ± {ci.half_width:.{digits}f}"
+        return ci_cell(by.get((algo, env), []), path, digits)
 
     parts = []
     if lqr_envs:
@@ -141,7 +128,7 @@ def plot(out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.plots import plot_ci_rows
     from torchrl_wbrm.training.reporting import load_results
 
     records = load_results(out)
@@ -150,20 +137,9 @@ def plot(out: Path) -> Path:
     fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 0.35 * len(algos) + 1.8), squeeze=False)
     for ax, env in zip(axes[0], envs):
         key = "return" if env == "mountain_car" else "regret"
-        for i, algo in enumerate(algos):
-            vals = [r["final"][key] for r in records if r["env"] == env and r.get("algo", "wbrm") == algo]
-            if not vals:
-                continue
-            ci = mean_ci(vals)
-            err = ci.half_width if len(vals) > 1 else 0.0
-            if key == "regret":  # log axis: the lower whisker stops above zero
-                ax.errorbar([max(ci.mean, 1e-4)], [i], xerr=[[min(err, max(ci.mean - 1e-4, 0.0))], [err]], fmt="o", capsize=3)
-            else:
-                ax.errorbar([ci.mean], [i], xerr=[err], fmt="o", capsize=3)
-        if key == "regret":
-            ax.set_xscale("log")
+        rows = {a: [r["final"][key] for r in records if r["env"] == env and r.get("algo", "wbrm") == a] for a in algos}
+        plot_ci_rows(ax, rows, log=key == "regret")
         ax.set_title(f"{env}: {'return (100 episodes)' if key == 'return' else 'paired regret'}", fontsize=10)
-        ax.set_yticks(range(len(algos)), algos)
     fig.suptitle("mean ± 95% CI over seeds (LQR: regret against the exact optimum)", fontsize=10)
     fig.tight_layout()
     path = out / "paper_tables.png"

@@ -157,7 +157,7 @@ def plot(out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.plots import plot_ci_rows
     from torchrl_wbrm.training.reporting import load_results
 
     records = [r for r in load_results(out) if r.get("study", {}).get("block") == "weighting"]
@@ -165,17 +165,10 @@ def plot(out: Path) -> Path:
     fig, axes = plt.subplots(1, len(envs), figsize=(5 * len(envs), 4.5), sharey=True, squeeze=False)
     methods = list(dict.fromkeys(r["study"]["method"] for r in records))
     for ax, env in zip(axes[0], envs):
-        for i, method in enumerate(methods):
-            vals = [r["final"]["regret"] for r in records if r["study"]["env"] == env and r["study"]["method"] == method]
-            if not vals:
-                continue
-            ci = mean_ci(vals)
-            err = 0 if len(vals) < 2 else ci.half_width
-            ax.errorbar([max(ci.mean, 1e-4)], [i], xerr=[[min(err, ci.mean - 1e-4 if ci.mean > 1e-4 else 0)], [err]],
-                        fmt="o", capsize=3)
-        ax.set_xscale("log")
+        rows = {m: [r["final"]["regret"] for r in records if r["study"]["env"] == env and r["study"]["method"] == m]
+                for m in methods}
+        plot_ci_rows(ax, rows, log=True)
         ax.set_title(f"{env}: paired regret (mean ± 95% CI)")
-        ax.set_yticks(range(len(methods)), methods)
         ax.axvline(0.01, color="grey", ls=":", label="goal 0.01")
         ax.legend(fontsize=8)
     fig.tight_layout()

@@ -5,8 +5,8 @@ import math
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import dispatch, TensorDictModule
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import TensorSpec
 
@@ -382,16 +382,11 @@ class MABOLoss(WeightedBellmanLoss):
         _, loss_critic, diagnostics = self._losses(tensordict)
         return loss_critic, diagnostics
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes ``"loss_value"``, ``"loss_critic"`` (and ``"loss_actor"``); writes δ² into ``"td_error"``."""
+    def _value_terms(self, tensordict: TensorDictBase) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """``"loss_value"`` and, for the network adversary, ``"loss_critic"``: ``forward`` (inherited) adds the
+        actor's loss and writes δ² into ``"td_error"``."""
         loss_value, loss_critic, diagnostics = self._losses(tensordict)
-        td_error = diagnostics.pop("td_error")
-        tensordict.set(self.tensor_keys.priority, td_error.unsqueeze(-1))
-        out = {"loss_value": loss_value, **diagnostics}
+        losses = {"loss_value": loss_value}
         if loss_critic is not None:
-            out["loss_critic"] = loss_critic
-        if self.has_actor:
-            loss_actor, actor_diagnostics = self.actor_loss(tensordict)
-            out.update(loss_actor=loss_actor, **actor_diagnostics)
-        return TensorDict(out, batch_size=[])
+            losses["loss_critic"] = loss_critic
+        return losses, diagnostics

@@ -514,13 +514,19 @@ class WeightedBellmanLoss(LossModule):
             per_sample_loss = per_sample_loss * self._weight(tensordict)
         return reduce_batch(per_sample_loss, self.reduction), diagnostics
 
+    def _value_terms(self, tensordict: TensorDictBase) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """The losses of one forward other than the actor's (here ``"loss_value"``) and their diagnostics, from one
+        evaluation of Q and its target; subclasses with more players (MABO's adversary) add theirs."""
+        loss_value, diagnostics = self.value_loss(tensordict)
+        return {"loss_value": loss_value}, diagnostics
+
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes ``"loss_value"`` (and ``"loss_actor"``) and writes δ² into ``tensordict["td_error"]``."""
-        loss_value, diagnostics = self.value_loss(tensordict)
+        losses, diagnostics = self._value_terms(tensordict)
         td_error = diagnostics.pop("td_error")
         tensordict.set(self.tensor_keys.priority, td_error.unsqueeze(-1))
-        out = {"loss_value": loss_value, **diagnostics}
+        out = {**losses, **diagnostics}
         if self.has_actor:
             loss_actor, actor_diagnostics = self.actor_loss(tensordict)
             out.update(loss_actor=loss_actor, **actor_diagnostics)

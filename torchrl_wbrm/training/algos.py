@@ -149,6 +149,15 @@ def _adam(params, lr: float) -> torch.optim.Adam:
     return torch.optim.Adam(list(params), lr=lr)
 
 
+def _critic_actor_optimisers(loss: LossModule, cfg: WBRMConfig, critic: str = "value") -> dict[str, torch.optim.Optimizer]:
+    """Adam for the loss's ``<critic>_network_params`` (``q.lr``) and ``actor_network_params`` (``q.actor_lr``), named
+    ``critic`` and ``"actor"`` (the names are checkpoint keys)."""
+    return {
+        critic: _adam(getattr(loss, f"{critic}_network_params").values(True, True), cfg.q.lr),
+        "actor": _adam(loss.actor_network_params.values(True, True), cfg.q.actor_lr),
+    }
+
+
 def _scalars(figures: dict | TensorDictBase) -> dict:
     return {k: v.detach() for k, v in figures.items() if isinstance(v, torch.Tensor) and v.ndim == 0}
 
@@ -222,10 +231,7 @@ def _bellman_residual(ctx: AlgoContext, *, weighted: bool) -> Algo:
     )
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau) if qc.bootstrap == "target" else None
-    optimisers = {
-        "value": _adam(loss.value_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = _critic_actor_optimisers(loss, ctx.cfg)
     return Algo(
         loss=loss,
         optimisers=optimisers,
@@ -278,10 +284,7 @@ def build_td3bc(ctx: AlgoContext) -> Algo:
     )
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau)
-    optimisers = {
-        "qvalue": _adam(loss.qvalue_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = _critic_actor_optimisers(loss, ctx.cfg, critic="qvalue")
 
     def step(batch: TensorDictBase, i: int) -> dict:
         loss_qvalue, _ = loss.qvalue_loss(batch)
@@ -310,10 +313,7 @@ def build_ddpg(ctx: AlgoContext) -> Algo:
                     delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau)
-    optimisers = {
-        "value": _adam(loss.value_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = _critic_actor_optimisers(loss, ctx.cfg)
 
     def step(batch: TensorDictBase, i: int) -> dict:
         loss_value, _ = loss.loss_value(batch)
@@ -346,11 +346,7 @@ def build_cql(ctx: AlgoContext) -> Algo:
     )
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau)
-    optimisers = {
-        "qvalue": _adam(loss.qvalue_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-        "alpha": _adam([loss.log_alpha], qc.actor_lr),
-    }
+    optimisers = {**_critic_actor_optimisers(loss, ctx.cfg, critic="qvalue"), "alpha": _adam([loss.log_alpha], qc.actor_lr)}
     if cc.with_lagrange:
         optimisers["alpha_prime"] = _adam([loss.log_alpha_prime], qc.lr)
 
@@ -382,11 +378,8 @@ def build_iql(ctx: AlgoContext) -> Algo:
                    temperature=ic.temperature, expectile=ic.expectile)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau)
-    optimisers = {
-        "qvalue": _adam(loss.qvalue_network_params.values(True, True), qc.lr),
-        "value": _adam(loss.value_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = {**_critic_actor_optimisers(loss, ctx.cfg, critic="qvalue"),
+                  "value": _adam(loss.value_network_params.values(True, True), qc.lr)}
 
     def step(batch: TensorDictBase, i: int) -> dict:
         out = loss(batch)
@@ -510,10 +503,7 @@ def build_fqi(ctx: AlgoContext) -> Algo:
                                num_action_samples=qc.num_action_samples, bc_alpha=qc.bc_alpha)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = HardUpdate(loss, value_network_update_interval=ctx.cfg.baselines.fqi.target_update_every)
-    optimisers = {
-        "value": _adam(loss.value_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = _critic_actor_optimisers(loss, ctx.cfg)
     return Algo(loss=loss, optimisers=optimisers, step=_bellman_step(loss, optimisers, ctx.cfg, updater=updater,
                                                                      every_step=True),
                 policy=actor, q_value=_q_reader(loss.value_network, loss.value_network_params), bellman_loss=loss)
@@ -544,10 +534,7 @@ def build_mabo(ctx: AlgoContext) -> Algo:
                     bc_alpha=qc.bc_alpha)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau) if mc.delay_value else None
-    optimisers = {
-        "value": _adam(loss.value_network_params.values(True, True), qc.lr),
-        "actor": _adam(loss.actor_network_params.values(True, True), qc.actor_lr),
-    }
+    optimisers = _critic_actor_optimisers(loss, ctx.cfg)
     if mc.adversary == "network":
         optimisers["critic"] = _adam(loss.critic_network_params.values(True, True), mc.critic_lr)
     bellman_step = _bellman_step(loss, optimisers, ctx.cfg, updater=updater)

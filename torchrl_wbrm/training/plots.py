@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-__all__ = ["plot_run"]
+__all__ = ["plot_ci_rows", "plot_run"]
 
 
 def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = "") -> list[Path]:
@@ -72,3 +72,22 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
         fig.savefig(paths[-1], dpi=110)
         plt.close(fig)
     return paths
+
+
+def plot_ci_rows(ax, rows: dict[str, list[float]], *, log: bool = False) -> None:
+    """One row per label on ``ax``: the mean of its values (seeds) with its 95% Student-t interval (none for a single
+    value). ``log``: a log x axis, the mean floored at 1e-4 and the lower whisker stopped above zero."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+
+    for i, values in enumerate(rows.values()):
+        if not values:
+            continue
+        ci = mean_ci(values)
+        err = ci.half_width if len(values) > 1 else 0.0
+        if log:
+            ax.errorbar([max(ci.mean, 1e-4)], [i], xerr=[[min(err, max(ci.mean - 1e-4, 0.0))], [err]], fmt="o", capsize=3)
+        else:
+            ax.errorbar([ci.mean], [i], xerr=[err], fmt="o", capsize=3)
+    if log:
+        ax.set_xscale("log")
+    ax.set_yticks(range(len(rows)), list(rows))

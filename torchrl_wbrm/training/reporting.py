@@ -1,7 +1,7 @@
 """Human-readable summaries of a run's results."""
 from __future__ import annotations
 
-__all__ = ["summarise", "load_results", "results_table"]
+__all__ = ["ci_cell", "load_results", "results_table", "summarise"]
 
 
 def summarise(results: dict) -> str:
@@ -59,14 +59,26 @@ def _lookup(record: dict, dotted: str):
     return node
 
 
+def ci_cell(records: list[dict], path: str, digits: int = 4) -> str:
+    """``mean ± 95% CI`` of the number at dotted ``path`` over ``records`` (the value alone for one record, "–" for
+    none): one cell of a results table."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+
+    values = [float(v) for v in (_lookup(r, path) for r in records) if isinstance(v, (int, float))]
+    if not values:
+        return "–"
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    ci = mean_ci(values)
+    return f"{ci.mean:.{digits}f} ± {ci.half_width:.{digits}f}"
+
+
 def results_table(records: list[dict], group_by: list[str], metrics: dict[str, str], *, digits: int = 4) -> str:
     """A Markdown table: one row per distinct value of ``group_by`` (config paths), ``mean ± 95% CI`` over seeds.
 
     ``metrics`` maps a column title to a dotted path in the results (e.g. ``{"regret": "final.regret"}``). The CI is
     Student-t over the runs of a row (the seeds), so it states how much the figure moves from seed to seed.
     """
-    from torchrl_wbrm.evaluation.stats import mean_ci
-
     rows: dict[tuple, list[dict]] = {}
     for rec in records:
         key = tuple(_lookup(rec, "config." + g) if not g.startswith("=") else _lookup(rec, g[1:]) for g in group_by)
@@ -76,14 +88,6 @@ def results_table(records: list[dict], group_by: list[str], metrics: dict[str, s
     for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
         recs = rows[key]
         cells = [str(k) for k in key] + [str(len(recs))]
-        for path in metrics.values():
-            values = [v for v in (_lookup(r, path) for r in recs) if isinstance(v, (int, float))]
-            if not values:
-                cells.append("–")
-            elif len(values) == 1:
-                cells.append(f"{values[0]:.{digits}f}")
-            else:
-                ci = mean_ci(values)
-                cells.append(f"{ci.mean:.{digits}f} ± {ci.half_width:.{digits}f}")
+        cells += [ci_cell(recs, path, digits) for path in metrics.values()]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
