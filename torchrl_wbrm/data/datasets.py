@@ -13,6 +13,7 @@ over a ``LazyTensorStorage`` (or a ``LazyMemmapStorage`` for data larger than me
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -36,7 +37,8 @@ __all__ = [
     "episode_returns",
 ]
 
-FORMAT_VERSION = 1
+#: 2: metadata.json records every file's dtype, shape, size and SHA-256 (1 had none).
+FORMAT_VERSION = 2
 #: Keys every transition set must hold.
 TRANSITION_KEYS = (
     "observation",
@@ -250,6 +252,11 @@ class OfflineDatasets:
                     f"Incompatible datasets: the {name} set has (shape, dtype) per key {sig}, but the transitions "
                     f"set has {reference}. Expert and behaviour data must come from the same env."
                 )
+        for name, td in content.items():
+            for key, value in td.items(True, True):
+                if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                    bad = int((~torch.isfinite(value)).reshape(value.shape[0], -1).any(-1).sum())
+                    raise ValueError(f"The {name} set has non-finite values in {key!r} ({bad} of {value.shape[0]} rows).")
 
     # ------------------------------------------------------------------ sampling
     def paired_sampler(self, batch_size: int) -> "PairedSampler":
@@ -273,18 +280,39 @@ class OfflineDatasets:
 
     # ------------------------------------------------------------------ disk
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the three sets (memory-mapped TensorDicts) and ``metadata.json`` to ``path``."""
+        """Write the three sets (memory-mapped TensorDicts) and ``metadata.json`` to ``path``.
+
+        ``metadata.json`` records, for every file of every set, its path, dtype, shape, size in bytes and SHA-256,
+        so :meth:`load` can verify the data before using it.
+        """
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
+        files = {}
         for name in PARTS:
-            getattr(self, name)[:].memmap(path / name)
-        meta = {"format_version": FORMAT_VERSION, "sizes": self.sizes(), **self.metadata}
-        (path / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
+            td = getattr(self, name)[:]
+            td.memmap(path / name)
+            entries = {}
+            for key in td.keys(True, True):
+                key = key if isinstance(key, tuple) else (key,)
+                rel = "/".join((name, *key)) + ".memmap"
+                value = td.get(key)
+                size, digest = _file_digest(path / rel)
+                expected = value.numel() * value.element_size()
+                if size != expected:
+                    raise RuntimeError(f"Saving {path}: {rel} holds {size} bytes after writing, expected {expected}.")
+                entries["/".join(key)] = {
+                    "file": rel, "dtype": str(value.dtype), "shape": list(value.shape), "bytes": size, "sha256": digest,
+                }
+            files[name] = entries
+        meta = {"format_version": FORMAT_VERSION, "sizes": self.sizes(), "files": files, **self.metadata}
+        tmp = path / "metadata.json.tmp"
+        tmp.write_text(json.dumps(meta, indent=2, default=str))
+        os.replace(tmp, path / "metadata.json")
         return path
 
-    @classmethod
-    def load(cls, path: str | os.PathLike, *, storage: str = "lazy", scratch_dir=None) -> "OfflineDatasets":
-        """Load what :meth:`save` wrote; missing, corrupt or incompatible data raises an error saying which."""
+    @staticmethod
+    def read_metadata(path: str | os.PathLike) -> dict:
+        """The parsed ``metadata.json`` of a saved dataset (its format version checked); the data are not read."""
         path = Path(path)
         if not path.is_dir():
             raise FileNotFoundError(f"No dataset directory at {path} (make one with OfflineDatasets.save).")
@@ -293,28 +321,42 @@ class OfflineDatasets:
             raise FileNotFoundError(f"{path} is not a dataset: it has no metadata.json.")
         try:
             meta = json.loads(meta_file.read_text())
-        except json.JSONDecodeError as err:
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise ValueError(f"Corrupt dataset at {path}: metadata.json is not valid JSON ({err}).") from err
-        version = meta.pop("format_version", None)
+        if not isinstance(meta, dict):
+            raise ValueError(f"Corrupt dataset at {path}: metadata.json holds a {type(meta).__name__}, not an object.")
+        version = meta.get("format_version")
         if version != FORMAT_VERSION:
             raise ValueError(
-                f"Incompatible dataset at {path}: format_version {version!r}, this code reads {FORMAT_VERSION}."
+                f"Incompatible dataset at {path}: format_version {version!r}, this code reads {FORMAT_VERSION} "
+                f"(version 2 added per-file checksums; re-create the dataset with OfflineDatasets.save)."
             )
+        return meta
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, storage: str = "lazy", scratch_dir=None) -> "OfflineDatasets":
+        """Load what :meth:`save` wrote, after verifying every file against ``metadata.json``.
+
+        Files are opened read-only and never padded, truncated or rewritten. A missing file, a size, dtype or shape
+        that differs from the metadata, or a SHA-256 that differs from the recorded one raises an error naming the
+        file and what was expected and found (``FileNotFoundError`` for a missing file, ``ValueError`` otherwise).
+        """
+        path = Path(path)
+        meta = dict(cls.read_metadata(path))
+        meta.pop("format_version")
         sizes = meta.pop("sizes", {})
+        files = meta.pop("files", None)
+        if not isinstance(files, dict):
+            raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no 'files' (their checksums).")
         parts = {}
         for name in PARTS:
             part = path / name
             if not part.is_dir():
                 raise FileNotFoundError(f"Dataset at {path} is missing its {name!r} part ({part}).")
-            try:
-                td = TensorDict.load_memmap(part)
-            except Exception as err:  # tensordict raises several types on a damaged folder
-                raise ValueError(f"Corrupt dataset at {path}: cannot read its {name!r} part ({err}).") from err
-            if name in sizes and td.shape[0] != sizes[name]:
-                raise ValueError(
-                    f"Corrupt dataset at {path}: {name!r} holds {td.shape[0]} samples, metadata says {sizes[name]}."
-                )
-            parts[name] = td.clone()  # into RAM, detached from the files
+            entries = files.get(name)
+            if not isinstance(entries, dict) or not entries:
+                raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no files for its {name!r} part.")
+            parts[name] = _read_verified_part(path, name, entries, sizes.get(name))
         return cls.from_tensordicts(
             parts["transitions"],
             parts["behaviour_samples"],
@@ -323,6 +365,75 @@ class OfflineDatasets:
             storage=storage,
             scratch_dir=scratch_dir,
         )
+
+
+def _file_digest(file: Path, chunk: int = 1 << 20) -> tuple[int, str]:
+    """``(size in bytes, SHA-256 hex digest)`` of ``file``, read in chunks."""
+    h = hashlib.sha256()
+    size = 0
+    with open(file, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+            size += len(block)
+    return size, h.hexdigest()
+
+
+def _torch_dtype(name: str, where: str) -> torch.dtype:
+    dtype = getattr(torch, str(name).removeprefix("torch."), None)
+    if not isinstance(dtype, torch.dtype):
+        raise ValueError(f"{where}: unknown dtype {name!r} in metadata.json.")
+    return dtype
+
+
+def _read_verified_part(root: Path, name: str, entries: dict, expected_rows) -> TensorDict:
+    """One set, read file by file (read-only) and checked against its recorded size, dtype, shape and SHA-256."""
+    where = f"Corrupt dataset at {root}"
+    values = {}
+    rows = None
+    for key, entry in entries.items():
+        try:
+            rel, dtype_name, shape = entry["file"], entry["dtype"], tuple(int(n) for n in entry["shape"])
+            expected_bytes, expected_hash = int(entry["bytes"]), str(entry["sha256"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{where}: the metadata of {name}/{key} is incomplete ({err!r}).") from err
+        dtype = _torch_dtype(dtype_name, f"{where}, file {rel}")
+        if not shape:
+            raise ValueError(f"{where}: file {rel} has an empty shape in metadata.json.")
+        if rows is None:
+            rows = shape[0]
+            if expected_rows is not None and rows != expected_rows:
+                raise ValueError(f"{where}: {name!r} holds {rows} samples, metadata says {expected_rows}.")
+        elif shape[0] != rows:
+            raise ValueError(f"{where}: file {rel} has {shape[0]} rows, the other files of {name!r} have {rows}.")
+        numel = math.prod(shape)
+        itemsize = torch.empty((), dtype=dtype).element_size()
+        if numel * itemsize != expected_bytes:
+            raise ValueError(
+                f"{where}: metadata.json says file {rel} is {dtype_name} of shape {list(shape)} "
+                f"({numel * itemsize} bytes) but also that it has {expected_bytes} bytes."
+            )
+        file = root / rel
+        if not file.is_file():
+            raise FileNotFoundError(f"{where}: file {rel} is missing (expected {expected_bytes} bytes).")
+        found_bytes = file.stat().st_size
+        if found_bytes != expected_bytes:
+            raise ValueError(
+                f"{where}: file {rel} has {found_bytes} bytes, expected {expected_bytes} "
+                f"({dtype_name}, shape {list(shape)}). The file is truncated or overwritten; it was not changed."
+            )
+        with open(file, "rb") as f:  # read-only: nothing on disk is touched
+            raw = f.read()
+        found_hash = hashlib.sha256(raw).hexdigest()
+        if found_hash != expected_hash:
+            raise ValueError(
+                f"{where}: file {rel} has SHA-256 {found_hash}, expected {expected_hash} "
+                f"(same size, different content: the file is damaged)."
+            )
+        values[tuple(key.split("/"))] = torch.frombuffer(bytearray(raw), dtype=dtype).reshape(shape)
+    td = TensorDict({}, batch_size=[rows])
+    for key, value in values.items():
+        td.set(key, value)
+    return td
 
 
 class PairedSampler:

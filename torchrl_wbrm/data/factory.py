@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -69,25 +70,70 @@ def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", s
     )
 
 
+def _expected_sizes(env: EnvConfig) -> dict[str, int]:
+    """The set sizes ``env``'s data config asks for: ``{"behaviour": |D| + |S^b|, "expert_samples": |S^e|}``."""
+    if env.kind == "lqr":
+        data, horizon = _to_dataclass(LQRDataConfig, env.lqr_data), _to_dataclass(LQRConfig, env.lqr).horizon
+        return {"behaviour": data.behaviour_episodes * horizon, "expert_samples": data.expert_episodes * horizon}
+    data = _to_dataclass(MountainCarDataConfig, env.mountain_car_data)
+    return {"behaviour": data.behaviour_transitions, "expert_samples": data.expert_transitions}
+
+
+def _check_cache_entry(target: Path, request: dict, expected: dict[str, int]) -> OfflineDatasets:
+    """Load a cache entry (every file verified by :meth:`OfflineDatasets.load`) and check that its metadata match
+    the request (the whole env config and the seed) and its sizes the config's; raises ``ValueError`` naming what
+    differs."""
+    meta = OfflineDatasets.read_metadata(target)
+    if meta.get("cache_request") != request:
+        raise ValueError(
+            f"{target}: its metadata record the request {meta.get('cache_request')!r}, not {request!r}."
+        )
+    datasets = OfflineDatasets.load(target)
+    sizes = datasets.sizes()
+    found = {"behaviour": sizes["transitions"] + sizes["behaviour_samples"], "expert_samples": sizes["expert_samples"]}
+    if found != expected:
+        raise ValueError(f"{target}: it holds {found} samples, the env config asks for {expected}.")
+    return datasets
+
+
 def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.PathLike) -> OfflineDatasets:
     """:func:`make_offline_datasets`, saved under ``cache_dir`` and loaded on later calls with the same env and seed.
 
-    The key is a hash of the whole env config and the seed, so any change of data settings makes new data. Runs in
-    parallel may race to write one entry: each writes a private folder and renames it into place; a loser loads the
-    winner's copy (the two are identical: same config, same seed).
+    The key is a hash of the whole env config and the seed, so any change of data settings makes new data. Before
+    an entry is used, every file is verified against the checksums, sizes, dtypes and shapes in its
+    ``metadata.json`` (:meth:`OfflineDatasets.load`), and its recorded request (env config and seed) and sizes are
+    compared with this call's. A bad entry is never patched: it is rebuilt in a private folder, swapped into place
+    by renames, and a one-line warning says so. Runs in parallel may race to write one entry: each writes a
+    private folder and renames it into place; a loser loads the winner's copy (same config, same seed).
     """
     env = _to_dataclass(EnvConfig, env)
-    key = hashlib.sha1(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str).encode()).hexdigest()
+    request = json.loads(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str))
+    key = hashlib.sha1(json.dumps(request, sort_keys=True).encode()).hexdigest()
     target = Path(cache_dir) / f"{env.name}_seed{seed}_{key[:12]}"
-    if not target.is_dir():
-        datasets = make_offline_datasets(env, seed=seed)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=target.parent, prefix=".tmp_"))
-        datasets.save(tmp)
+    expected = _expected_sizes(env)
+    if target.is_dir():
         try:
-            os.rename(tmp, target)
-        except OSError:  # another run got there first
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            return datasets
-    return OfflineDatasets.load(target)
+            return _check_cache_entry(target, request, expected)
+        except (OSError, ValueError, KeyError) as err:
+            warnings.warn(f"Data cache entry {target} failed verification and is rebuilt: {err}", stacklevel=2)
+            reason = err
+    else:
+        reason = None
+    datasets = make_offline_datasets(env, seed=seed)
+    datasets.metadata["cache_request"] = request
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=target.parent, prefix=".tmp_"))
+    datasets.save(tmp)
+    if reason is not None and target.is_dir():  # move the bad entry aside (one rename), then put the new one in
+        bad = Path(tempfile.mkdtemp(dir=target.parent, prefix=".bad_"))
+        try:
+            os.rename(target, bad / target.name)
+        except OSError:  # another run moved it first
+            pass
+        shutil.rmtree(bad, ignore_errors=True)
+    try:
+        os.rename(tmp, target)
+    except OSError:  # another run got there first: use its copy, verified
+        shutil.rmtree(tmp, ignore_errors=True)
+        return _check_cache_entry(target, request, expected)
+    return datasets
