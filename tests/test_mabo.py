@@ -7,6 +7,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from test_weighted_bellman import (  # the sibling loss's hand-checked problems (tests/ is on sys.path under pytest)
     check_targets_change_only_when_the_updater_steps,
+    missing_key_pattern,
     GAMMA,
     _chain_mdp,
     _continuous_data,
@@ -153,6 +154,30 @@ def test_known_answer_network_adversary(delay_value):
     torch.testing.assert_close(out["loss_actor"], -_hand_q(x, -0.5 * x.sum(-1, keepdim=True)).mean())
 
 
+@pytest.mark.parametrize("adversary", ["network", "linear"])
+def test_the_bootstrap_reads_the_target_q_when_delayed(adversary):
+    """delay_value=True: δ bootstraps from the target Q' and target actor μ'; set apart from the online ones, they give
+    a different, known loss (with a fresh SoftUpdate the target is a copy and could not be told from the online Q)."""
+    loss = _loss(adversary, delay_value=True)
+    SoftUpdate(loss, tau=0.1)
+    with torch.no_grad():
+        loss.target_value_network_params["module", "linear", "weight"].data.copy_(torch.tensor([[-0.5, 1.0, 0.25]]))
+        loss.target_value_network_params["module", "linear", "bias"].data.fill_(-1.0)
+        loss.target_actor_network_params["module", "weight"].data.fill_(0.25)
+    data = _continuous_data(weight=False)
+    x, a, x_next = data["observation"], data["action"], data["next", "observation"]
+    q_target = -0.5 * x_next[:, 0] + 1.0 * x_next[:, 1] + 0.25 * (0.25 * x_next.sum(-1)) - 1.0
+    not_terminated = (~data["next", "terminated"]).float().squeeze(-1)
+    delta = _hand_q(x, a) - data["next", "reward"].squeeze(-1) - GAMMA * not_terminated * q_target
+    if adversary == "network":
+        expected = (W_BOUND * torch.tanh(_hand_u(x, a)) * delta).mean().abs()
+    else:
+        expected = W_BOUND * (_AffineFeatures()(x, a) * delta.unsqueeze(-1)).mean(0).norm()
+    torch.testing.assert_close(loss(data)["loss_value"], expected)
+    online = _loss(adversary, delay_value=False)(data.clone())["loss_value"]  # the paper's form: the online Q
+    assert (online - expected).abs() > 0.05
+
+
 def test_known_answer_linear_adversary_and_its_gradient():
     """loss_value = B·‖mean φ δ‖₂ (Cauchy–Schwarz), with the gradient of that norm w.r.t. Q (Danskin)."""
     loss = _loss("linear")
@@ -164,12 +189,22 @@ def test_known_answer_linear_adversary_and_its_gradient():
     torch.testing.assert_close(out["loss_value"], expected)
     assert "loss_critic" not in out.keys()
     out["loss_value"].backward()
-    weight = loss.value_network_params["module", "linear", "weight"]
-    grad_loss = weight.grad.clone()
-    weight.grad = None
-    q_value, target_value = loss.bellman_error(data)  # differentiable in both terms (delay_value=False)
-    (W_BOUND * (phi * (q_value - target_value).unsqueeze(-1)).mean(0).norm()).backward()
-    torch.testing.assert_close(grad_loss, weight.grad)
+    grad_loss = loss.value_network_params["module", "linear", "weight"].grad.clone()
+    # by hand, independently of the loss's own functions: Q_θ(x, a) = θ·[x, a] + ½ in both Q terms (no target,
+    # delay_value=False), the actor μ(x') = −½Σx'; d/dθ B‖mean φ δ‖ = B mean_i (φ_i·u)(z_i − γ(1 − term_i) z'_i)
+    theta = torch.tensor([[0.25, 0.5, 0.75]], requires_grad=True)
+    x, a, x_next = data["observation"], data["action"], data["next", "observation"]
+    z_next = torch.cat([x_next, -0.5 * x_next.sum(-1, keepdim=True)], -1)
+    not_terminated = (~data["next", "terminated"]).float().squeeze(-1)
+    q = (torch.cat([x, a], -1) @ theta.T).squeeze(-1) + 0.5
+    q_next = (z_next @ theta.T).squeeze(-1) + 0.5
+    delta_theta = q - data["next", "reward"].squeeze(-1) - GAMMA * not_terminated * q_next
+    (W_BOUND * (phi * delta_theta.unsqueeze(-1)).mean(0).norm()).backward()
+    torch.testing.assert_close(grad_loss, theta.grad)
+    g = (phi * delta.unsqueeze(-1)).mean(0)  # the same gradient in closed form (Danskin)
+    z = torch.cat([x, a], -1)
+    closed = W_BOUND * ((phi @ (g / g.norm())).unsqueeze(-1) * (z - GAMMA * not_terminated.unsqueeze(-1) * z_next)).mean(0)
+    torch.testing.assert_close(grad_loss, closed.unsqueeze(0))
 
 
 def test_default_gamma_and_make_value_estimator():
@@ -313,8 +348,9 @@ def test_state_dict_round_trip():
 # ---------------------------------------------------------------- bad inputs
 def test_missing_entries_are_key_errors_naming_the_key():
     loss = _loss()
-    for key in [("next", "reward"), ("next", "terminated"), ("next", "observation"), "observation", "action"]:
-        with pytest.raises(KeyError, match="Missing key"):
+    for key in [("next", "reward"), ("next", "terminated"), ("next", "done"), ("next", "observation"), "observation",
+                "action"]:
+        with pytest.raises(KeyError, match=missing_key_pattern(key)):
             loss(_continuous_data(weight=False).exclude(key))
     critic = _adversary_network(out_key="somewhere_else")
     wrong_out = MABOLoss(_linear_q(), critic, actor_network=_linear_actor())

@@ -118,6 +118,41 @@ def test_known_answer_continuous_with_actor_and_target(residual):
     torch.testing.assert_close(out["loss_actor"], -_hand_q(x, -0.5 * x.sum(-1, keepdim=True)).mean())
 
 
+def _set_linear(params, weight, bias=None, name=("module", "linear")) -> None:
+    """Overwrite a linear layer's entries of a loss's (online or target) parameters, in place."""
+    with torch.no_grad():
+        params[(*name, "weight")].data.copy_(torch.tensor([weight]))
+        if bias is not None:
+            params[(*name, "bias")].data.fill_(bias)
+
+
+@pytest.mark.parametrize("residual", ["squared", "absolute_mean"])
+def test_the_bootstrap_reads_the_target_networks_not_the_online_ones(residual):
+    """With delay_value the max over next actions is Q'(x', μ'(x')) of the *target* Q and actor: a target that differs
+    from the online networks gives a different, known loss (a test whose target equals the online Q cannot tell)."""
+    loss = _continuous_loss(residual=residual)
+    SoftUpdate(loss, tau=0.1)
+    _set_linear(loss.target_value_network_params, [-0.5, 1.0, 0.25], bias=-1.0, name=("module", "linear"))
+    with torch.no_grad():
+        loss.target_actor_network_params["module", "weight"].data.fill_(0.25)
+    data = _continuous_data()
+    x, a, x_next = data["observation"], data["action"], data["next", "observation"]
+    mu_target = 0.25 * x_next.sum(-1, keepdim=True)
+    q_target = -0.5 * x_next[:, 0] + 1.0 * x_next[:, 1] + 0.25 * mu_target[:, 0] - 1.0
+    not_terminated = (~data["next", "terminated"]).float().squeeze(-1)
+    delta = _hand_q(x, a) - data["next", "reward"].squeeze(-1) - GAMMA * not_terminated * q_target
+    w = data["density_ratio"].squeeze(-1)
+    expected = (w * delta**2).mean() if residual == "squared" else (w * delta).mean().abs()
+    out = loss(data)
+    torch.testing.assert_close(out["loss_value"], expected)
+    assert (expected - (w * _hand_td_error(data) ** 2).mean()).abs() > 0.1  # the online bootstrap gives another answer
+    # residual gradient (delay_value=False) has no target: the same data bootstrap from the online networks
+    online = _continuous_loss(residual=residual, delay_value=False, delay_actor=False)
+    delta_online = _hand_td_error(data)
+    expected_online = (w * delta_online**2).mean() if residual == "squared" else (w * delta_online).mean().abs()
+    torch.testing.assert_close(online(data.clone())["loss_value"], expected_online)
+
+
 def test_default_gamma_is_torchrl_default_and_make_value_estimator_sets_it():
     data = _continuous_data()
     loss = WeightedBellmanLoss(_linear_q(), actor_network=_linear_actor())
@@ -151,15 +186,24 @@ def test_unweighted_squared_equals_dqn_loss_l2():
     dqn.make_value_estimator(gamma=0.9)
     ours = WeightedBellmanLoss(q, residual="squared", delay_value=True, use_weights=False)
     ours.make_value_estimator(gamma=0.9)
-    HardUpdate(dqn, value_network_update_interval=10)
-    HardUpdate(ours, value_network_update_interval=10)
+    ours_weighted = WeightedBellmanLoss(q, residual="squared", delay_value=True)
+    ours_weighted.make_value_estimator(gamma=0.9)
+    for loss in (dqn, ours, ours_weighted):
+        HardUpdate(loss, value_network_update_interval=10)
+    # move the online Q (shared by the three losses) away from the targets, which HardUpdate made copies of it:
+    # with target = online, a loss that bootstraps from the online Q would match DQNLoss too
+    with torch.no_grad():
+        for p in q.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    for loss in (dqn, ours, ours_weighted):
+        assert (_flat(loss.target_value_network_params) - _flat(loss.value_network_params)).abs().max() > 0.1
     expected = dqn(data.clone())["loss"]
     torch.testing.assert_close(ours(data.clone())["loss_value"], expected)
     data["density_ratio"] = torch.ones(n, 1)
-    ours_weighted = WeightedBellmanLoss(q, residual="squared", delay_value=True)
-    ours_weighted.make_value_estimator(gamma=0.9)
-    HardUpdate(ours_weighted, value_network_update_interval=10)
     torch.testing.assert_close(ours_weighted(data)["loss_value"], expected)
+    online = WeightedBellmanLoss(q, residual="squared", delay_value=False, use_weights=False)  # no target network
+    online.make_value_estimator(gamma=0.9)
+    assert (online(data.clone())["loss_value"] - expected).abs() > 1e-2
 
 
 def test_discrete_categorical_actions_match_one_hot():
@@ -408,11 +452,21 @@ def test_missing_weight_is_a_key_error_naming_the_key():
         loss(_continuous_data(weight=False))
 
 
-def test_missing_transition_entries_are_key_errors():
+def missing_key_pattern(key) -> str:
+    """The KeyError message's start for a missing ``key``: its name right after "Missing key", then why it is needed.
+    A next-state input of a network is looked up, and so named, inside the "next" sub-TensorDict."""
+    if key == ("next", "observation"):
+        return r"Missing key \W*observation\W* \(a next-state input"
+    name = r"\W+".join(key) if isinstance(key, tuple) else key
+    return rf"Missing key \W*{name}\W* \("
+
+
+def test_missing_transition_entries_are_key_errors_naming_the_key():
     loss = _continuous_loss()
     SoftUpdate(loss, tau=0.1)
-    for key in [("next", "reward"), ("next", "terminated"), ("next", "observation"), "observation"]:
-        with pytest.raises(KeyError, match="Missing key"):
+    for key in [("next", "reward"), ("next", "terminated"), ("next", "done"), ("next", "observation"), "observation",
+                "action"]:
+        with pytest.raises(KeyError, match=missing_key_pattern(key)):
             loss(_continuous_data().exclude(key))
 
 
