@@ -17,7 +17,12 @@ from torchrl_wbrm.modules.maximisers import (
     uniform_actions,
 )
 from torchrl_wbrm.modules.networks import (
+    ACTIVATIONS,
     BoundedTanh,
+    EnsembleReduction,
+    NormalisedMLP,
+    build_mlp,
+    resolve_activation,
     make_deterministic_actor,
     make_discrete_q_network,
     make_q_network,
@@ -25,7 +30,12 @@ from torchrl_wbrm.modules.networks import (
 )
 
 __all__ = [
+    "ACTIVATIONS",
     "ActionMaximiser",
+    "EnsembleReduction",
+    "NormalisedMLP",
+    "build_mlp",
+    "resolve_activation",
     "ActorMaximiser",
     "BoundedRatio",
     "BoundedTanh",

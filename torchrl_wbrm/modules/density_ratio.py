@@ -13,6 +13,8 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
+from torchrl_wbrm.modules.networks import build_mlp
+
 __all__ = ["BoundedRatio", "DensityRatioNetwork", "PARAMETERISATIONS", "DEFAULT_PARAMETERISATION"]
 
 PARAMETERISATIONS = ("soft_clamp", "log_sigmoid", "softplus", "hard_clamp")
@@ -124,7 +126,9 @@ class DensityRatioNetwork(TensorDictModule):
             is part of the method: it limits how far a flexible network can "hack" the loss on expert-only regions.
         parameterisation (str): see :class:`BoundedRatio` (measured comparison there). Defaults to ``"softplus"``.
         num_cells (sequence of int): hidden widths. Defaults to ``(256, 256)``.
-        activation (type): hidden activation. Defaults to :class:`torch.nn.ReLU`.
+        activation (type or str): hidden activation class or its :mod:`torch.nn` name. Defaults to
+            :class:`torch.nn.ReLU`.
+        layer_norm (bool): a ``LayerNorm`` after each hidden linear layer. Defaults to ``False``.
         in_keys (sequence of NestedKey): inputs, concatenated. Defaults to ``("observation", "action")``.
         out_key (NestedKey): the output key. Defaults to ``"density_ratio"``.
 
@@ -146,16 +150,13 @@ class DensityRatioNetwork(TensorDictModule):
         bounds: tuple[float, float] = (1e-3, 1e3),
         parameterisation: str = DEFAULT_PARAMETERISATION,
         num_cells: Sequence[int] = (256, 256),
-        activation: type[nn.Module] = nn.ReLU,
+        activation: str | type[nn.Module] = nn.ReLU,
+        layer_norm: bool = False,
         in_keys: Sequence[NestedKey] = ("observation", "action"),
         out_key: NestedKey = "density_ratio",
     ) -> None:
-        mlp = MLP(
-            in_features=observation_dim + action_dim,
-            out_features=1,
-            num_cells=list(num_cells),
-            activation_class=activation,
-        )
+        mlp = build_mlp(observation_dim + action_dim, 1, num_cells=num_cells, activation=activation,
+                        layer_norm=layer_norm)
         with torch.no_grad():  # start at o ≈ 0, i.e. ŵ ≈ 1 everywhere
             mlp[-1].weight.mul_(0.1)
             mlp[-1].bias.zero_()

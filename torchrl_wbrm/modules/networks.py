@@ -2,8 +2,18 @@
 
 All builders return ordinary TorchRL modules (:class:`~torchrl.modules.ValueOperator`,
 :class:`~torchrl.modules.QValueActor`, :class:`~torchrl.modules.Actor`), so they plug into TorchRL losses, collectors
-and :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` alike. The paper (Section 3) fits Q and the ratio with
-ReLU networks, hence ReLU is the default activation here.
+and :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` alike.
+
+Every builder takes the same network options: ``num_cells`` (widths; its length is the depth), ``activation`` (a
+:mod:`torch.nn` activation class or its name, e.g. ``"SiLU"``, see :func:`resolve_activation`), ``layer_norm``
+(a :class:`torch.nn.LayerNorm` after each hidden linear layer) and an optional fixed input normalisation
+``(x − loc) / scale`` of the observation (``observation_loc``, ``observation_scale``). Q networks also take
+``num_members`` (an ensemble of independently initialised MLPs, reduced by ``"mean"`` or ``"min"``) and
+``value_scale`` (Q = ``value_scale`` · MLP: the network learns Q in units of ``value_scale``).
+
+The paper's theory (Section 4) is stated for ReLU networks, but Q* of the LQR task is a quadratic: a smooth
+activation fits it, and its gradient in the action (which the actor follows), far better. The recipe's default is
+SiLU for Q; the builders' own default stays ReLU.
 """
 from __future__ import annotations
 
@@ -18,23 +28,130 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, Actor, ProbabilisticActor, QValueActor, TanhNormal, ValueOperator
 
 __all__ = [
+    "ACTIVATIONS",
     "BoundedTanh",
+    "EnsembleReduction",
+    "NormalisedMLP",
+    "build_mlp",
     "make_deterministic_actor",
     "make_discrete_q_network",
     "make_q_network",
     "make_tanh_normal_actor",
+    "resolve_activation",
 ]
 
+#: The names :func:`resolve_activation` accepts: every elementwise activation of :mod:`torch.nn` (case-insensitive).
+ACTIVATIONS = tuple(
+    name for name in nn.modules.activation.__all__
+    if name not in ("MultiheadAttention", "Softmax", "Softmin", "Softmax2d", "LogSoftmax", "GLU", "Threshold")
+)
+ENSEMBLE_REDUCTIONS = ("mean", "min")
 
-def _mlp(in_features: int, out_features: int, num_cells: Sequence[int], activation: type[nn.Module]) -> MLP:
-    return MLP(in_features=in_features, out_features=out_features, num_cells=list(num_cells), activation_class=activation)
+
+def resolve_activation(activation: str | type[nn.Module], *, key: str = "activation") -> type[nn.Module]:
+    """The :mod:`torch.nn` activation class named ``activation`` (``"SiLU"``, ``"silu"``, ``"ReLU"``, ...), or the
+    class itself. An unknown name raises a ``ValueError`` that names ``key`` and lists the known names.
+
+    Examples:
+        >>> resolve_activation("silu")
+        <class 'torch.nn.modules.activation.SiLU'>
+    """
+    if isinstance(activation, type) and issubclass(activation, nn.Module):
+        return activation
+    if isinstance(activation, str):
+        by_lower = {name.lower(): name for name in ACTIVATIONS}
+        name = by_lower.get(activation.lower())
+        if name is not None:
+            return getattr(nn, name)
+    raise ValueError(f"{key}={activation!r} is not a torch.nn activation: choose one of {list(ACTIVATIONS)}.")
+
+
+def build_mlp(
+    in_features: int,
+    out_features: int,
+    *,
+    num_cells: Sequence[int] = (256, 256),
+    activation: str | type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
+) -> MLP:
+    """torchrl's :class:`~torchrl.modules.MLP` with the project's network options (hidden ``num_cells``, an
+    activation class or name, a :class:`torch.nn.LayerNorm` after each hidden linear layer with ``layer_norm``)."""
+    num_cells = [int(c) for c in num_cells]
+    if any(c <= 0 for c in num_cells):
+        raise ValueError(f"num_cells must hold positive widths, got {num_cells}.")
+    norm = {}
+    if layer_norm and num_cells:
+        norm = {"norm_class": nn.LayerNorm, "norm_kwargs": [{"normalized_shape": c} for c in num_cells]}
+    return MLP(in_features=in_features, out_features=out_features, num_cells=num_cells,
+               activation_class=resolve_activation(activation), **norm)
+
+
+class EnsembleReduction(nn.Module):
+    """``reduce_k f_k(x)`` over independently initialised members ``f_k`` (``"mean"`` or ``"min"``, elementwise).
+
+    Used as a Q network, the reduced value is *the* Q everywhere (data term, bootstrap target and actor), so a
+    ``"mean"`` ensemble averages out the members' initialisation noise and ``"min"`` is a pessimistic estimate.
+    """
+
+    def __init__(self, members: Sequence[nn.Module], reduction: str = "mean") -> None:
+        super().__init__()
+        if reduction not in ENSEMBLE_REDUCTIONS:
+            raise ValueError(f"ensemble reduction must be one of {ENSEMBLE_REDUCTIONS}, got {reduction!r}.")
+        if len(members) < 1:
+            raise ValueError("An ensemble needs at least one member.")
+        self.members = nn.ModuleList(members)
+        self.reduction = reduction
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        values = torch.stack([member(*inputs) for member in self.members])
+        return values.mean(0) if self.reduction == "mean" else values.amin(0)
+
+    def extra_repr(self) -> str:
+        return f"reduction={self.reduction!r}"
+
+
+class NormalisedMLP(nn.Module):
+    """``output_scale · net((cat(inputs) − loc) / scale)``: a fixed affine map of the concatenated inputs in front of
+    ``net`` and a fixed scale behind it (buffers, not trained; saved in the state dict).
+
+    ``loc``/``scale`` cover the observation coordinates; coordinates past them (the action) pass unchanged.
+    """
+
+    def __init__(self, net: nn.Module, *, loc: torch.Tensor | None = None, scale: torch.Tensor | None = None,
+                 in_features: int, output_scale: float = 1.0) -> None:
+        super().__init__()
+        self.net = net
+        full_loc, full_scale = torch.zeros(in_features), torch.ones(in_features)
+        if loc is not None:
+            loc = torch.as_tensor(loc, dtype=torch.get_default_dtype()).reshape(-1)
+            scale = torch.as_tensor(scale, dtype=torch.get_default_dtype()).reshape(-1)
+            if loc.shape != scale.shape or loc.numel() > in_features:
+                raise ValueError(f"observation_loc {tuple(loc.shape)} and observation_scale {tuple(scale.shape)} must "
+                                 f"have the same shape, of at most {in_features} features.")
+            if not (torch.isfinite(loc).all() and torch.isfinite(scale).all() and (scale > 0).all()):
+                raise ValueError(f"observation_loc must be finite and observation_scale finite and > 0, got {loc} "
+                                 f"and {scale}.")
+            full_loc[: loc.numel()], full_scale[: scale.numel()] = loc, scale
+        if not (output_scale > 0 and torch.isfinite(torch.tensor(float(output_scale)))):
+            raise ValueError(f"value_scale must be finite and > 0, got {output_scale!r}.")
+        self.register_buffer("loc", full_loc)
+        self.register_buffer("scale", full_scale)
+        self.output_scale = float(output_scale)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        x = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
+        out = self.net((x - self.loc) / self.scale)
+        return out * self.output_scale if self.output_scale != 1.0 else out
+
+    def extra_repr(self) -> str:
+        return f"output_scale={self.output_scale}"
 
 
 def _set_output_bias(mlp: MLP, initial_bias: float) -> None:
     """Start the last layer's bias at ``initial_bias``.
 
     Offline Q targets are of order mean(r)/(1 − γ) (about 100 on the LQR task with γ = 0.9); a network starting at 0
-    spends thousands of steps moving its constant (DESIGN.md, "Measured on this machine").
+    spends thousands of steps moving its constant.
     """
     last = mlp[-1]
     if not isinstance(last, nn.Linear) or last.bias is None:
@@ -43,13 +160,52 @@ def _set_output_bias(mlp: MLP, initial_bias: float) -> None:
         last.bias.fill_(float(initial_bias))
 
 
+def _network(
+    in_features: int,
+    out_features: int,
+    *,
+    num_cells: Sequence[int],
+    activation,
+    layer_norm: bool,
+    initial_bias: float | None = None,
+    num_members: int = 1,
+    ensemble_reduction: str = "mean",
+    value_scale: float = 1.0,
+    observation_loc=None,
+    observation_scale=None,
+) -> nn.Module:
+    """The MLP (or ensemble of MLPs) of every builder, behind the optional fixed input normalisation and output
+    scale. The output bias starts at ``initial_bias / value_scale`` so that the network starts at ``initial_bias``."""
+    if int(num_members) < 1:
+        raise ValueError(f"num_members must be >= 1, got {num_members!r}.")
+    if (observation_loc is None) != (observation_scale is None):
+        raise ValueError("Pass both observation_loc and observation_scale, or neither.")
+    members = []
+    for _ in range(int(num_members)):
+        mlp = build_mlp(in_features, out_features, num_cells=num_cells, activation=activation, layer_norm=layer_norm)
+        if initial_bias is not None:
+            _set_output_bias(mlp, initial_bias / value_scale)
+        members.append(mlp)
+    net = members[0] if len(members) == 1 else EnsembleReduction(members, ensemble_reduction)
+    if observation_loc is None and value_scale == 1.0:
+        return net
+    return NormalisedMLP(net, loc=observation_loc, scale=observation_scale, in_features=in_features,
+                         output_scale=value_scale)
+
+
 def make_q_network(
     observation_dim: int,
     action_dim: int,
     *,
     num_cells: Sequence[int] = (256, 256),
-    activation: type[nn.Module] = nn.ReLU,
+    activation: str | type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
     initial_bias: float = 0.0,
+    num_members: int = 1,
+    ensemble_reduction: str = "mean",
+    value_scale: float = 1.0,
+    observation_loc: torch.Tensor | None = None,
+    observation_scale: torch.Tensor | None = None,
     in_keys: Sequence[NestedKey] = ("observation", "action"),
     out_key: NestedKey = "state_action_value",
 ) -> ValueOperator:
@@ -60,10 +216,19 @@ def make_q_network(
         action_dim (int): size of the (flat) action.
 
     Keyword Args:
-        num_cells (sequence of int): hidden layer widths. Defaults to ``(256, 256)``.
-        activation (type): hidden activation class. Defaults to :class:`torch.nn.ReLU`.
-        initial_bias (float): starting value of the output bias. Set it to ``mean(r) / (1 − γ)`` so that Q starts
+        num_cells (sequence of int): hidden layer widths (their number is the depth). Defaults to ``(256, 256)``.
+        activation (type or str): hidden activation class or its :mod:`torch.nn` name (:func:`resolve_activation`).
+            Defaults to :class:`torch.nn.ReLU`.
+        layer_norm (bool): a ``LayerNorm`` after each hidden linear layer. Defaults to ``False``.
+        initial_bias (float): starting value of Q's constant. Set it to ``mean(r) / (1 − γ)`` so that Q starts
             near the scale of its targets. Defaults to ``0.0``.
+        num_members (int): independently initialised MLPs whose outputs are reduced (:class:`EnsembleReduction`).
+            Defaults to ``1``.
+        ensemble_reduction (str): ``"mean"`` or ``"min"`` over the members. Defaults to ``"mean"``.
+        value_scale (float): Q = ``value_scale`` · MLP (the network's own outputs are in units of ``value_scale``).
+            Defaults to ``1.0``.
+        observation_loc, observation_scale (Tensor, optional): a fixed normalisation ``(x − loc) / scale`` of the
+            observation before the MLP (e.g. the dataset's mean and standard deviation). Defaults to none.
         in_keys (sequence of NestedKey): the observation and action keys, concatenated in this order.
         out_key (NestedKey): where Q is written. Defaults to ``"state_action_value"``.
 
@@ -75,9 +240,12 @@ def make_q_network(
         >>> q(td)["state_action_value"].shape
         torch.Size([5, 1])
     """
-    mlp = _mlp(observation_dim + action_dim, 1, num_cells, activation)
-    _set_output_bias(mlp, initial_bias)
-    return ValueOperator(mlp, in_keys=list(in_keys), out_keys=[out_key])
+    net = _network(
+        observation_dim + action_dim, 1, num_cells=num_cells, activation=activation, layer_norm=layer_norm,
+        initial_bias=initial_bias, num_members=num_members, ensemble_reduction=ensemble_reduction,
+        value_scale=value_scale, observation_loc=observation_loc, observation_scale=observation_scale,
+    )
+    return ValueOperator(net, in_keys=list(in_keys), out_keys=[out_key])
 
 
 def make_discrete_q_network(
@@ -86,8 +254,14 @@ def make_discrete_q_network(
     *,
     action_space: str = "one-hot",
     num_cells: Sequence[int] = (256, 256),
-    activation: type[nn.Module] = nn.ReLU,
+    activation: str | type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
     initial_bias: float = 0.0,
+    num_members: int = 1,
+    ensemble_reduction: str = "mean",
+    value_scale: float = 1.0,
+    observation_loc: torch.Tensor | None = None,
+    observation_scale: torch.Tensor | None = None,
     in_keys: Sequence[NestedKey] = ("observation",),
 ) -> QValueActor:
     """A discrete Q head ``x ↦ (Q(x, a))_a``: a :class:`~torchrl.modules.QValueActor` writing ``"action_value"``.
@@ -100,7 +274,8 @@ def make_discrete_q_network(
 
     Keyword Args:
         action_space (str): ``"one-hot"`` (default) or ``"categorical"``: how actions are encoded.
-        num_cells, activation, initial_bias, in_keys: as in :func:`make_q_network`.
+        num_cells, activation, layer_norm, initial_bias, num_members, ensemble_reduction, value_scale,
+        observation_loc, observation_scale, in_keys: as in :func:`make_q_network`.
 
     Examples:
         >>> import torch
@@ -116,9 +291,12 @@ def make_discrete_q_network(
         spec = Categorical(num_actions)
     else:
         raise ValueError(f"action_space must be 'one-hot' or 'categorical', got {action_space!r}.")
-    mlp = _mlp(observation_dim, num_actions, num_cells, activation)
-    _set_output_bias(mlp, initial_bias)
-    return QValueActor(mlp, in_keys=list(in_keys), spec=spec)
+    net = _network(
+        observation_dim, num_actions, num_cells=num_cells, activation=activation, layer_norm=layer_norm,
+        initial_bias=initial_bias, num_members=num_members, ensemble_reduction=ensemble_reduction,
+        value_scale=value_scale, observation_loc=observation_loc, observation_scale=observation_scale,
+    )
+    return QValueActor(net, in_keys=list(in_keys), spec=spec)
 
 
 class BoundedTanh(nn.Module):
@@ -144,14 +322,18 @@ def make_deterministic_actor(
     action_spec: Bounded,
     *,
     num_cells: Sequence[int] = (256, 256),
-    activation: type[nn.Module] = nn.ReLU,
+    activation: str | type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
+    observation_loc: torch.Tensor | None = None,
+    observation_scale: torch.Tensor | None = None,
     in_keys: Sequence[NestedKey] = ("observation",),
     out_key: NestedKey = "action",
 ) -> Actor:
     """A deterministic actor ``μ(x)`` whose output lies inside the bounds of ``action_spec`` (a ``Bounded`` spec).
 
     The action is ``low + (high − low) · (tanh(u) + 1) / 2`` with ``u`` the MLP's output, so it never leaves the box;
-    at initialisation it sits near the centre of the box.
+    at initialisation it sits near the centre of the box. ``num_cells``, ``activation``, ``layer_norm``,
+    ``observation_loc`` and ``observation_scale`` are as in :func:`make_q_network`.
 
     Examples:
         >>> import torch
@@ -167,23 +349,33 @@ def make_deterministic_actor(
         raise ValueError(f"make_deterministic_actor needs a Bounded action spec, got {type(action_spec).__name__}.")
     low, high = action_spec.space.low, action_spec.space.high
     action_dim = action_spec.shape[-1] if len(action_spec.shape) else 1
-    module = nn.Sequential(_mlp(observation_dim, action_dim, num_cells, activation), BoundedTanh(low, high))
+    net = _network(observation_dim, action_dim, num_cells=num_cells, activation=activation, layer_norm=layer_norm,
+                   observation_loc=observation_loc, observation_scale=observation_scale)
+    module = nn.Sequential(net, BoundedTanh(low, high))
     return Actor(module, in_keys=list(in_keys), out_keys=[out_key], spec=action_spec)
 
 
 def make_tanh_normal_actor(
-    observation_dim: int, action_spec: Bounded, *, num_cells: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU
+    observation_dim: int,
+    action_spec: Bounded,
+    *,
+    num_cells: Sequence[int] = (256, 256),
+    activation: str | type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
+    observation_loc: torch.Tensor | None = None,
+    observation_scale: torch.Tensor | None = None,
 ) -> ProbabilisticActor:
     """A stochastic actor ``a ~ TanhNormal(μ(x), σ(x))`` inside the box of ``action_spec`` (for CQL and IQL).
 
     An MLP writes ``2m`` numbers, :class:`~tensordict.nn.NormalParamExtractor` splits them into ``"loc"`` and a
     positive ``"scale"``; :class:`~torchrl.modules.TanhNormal` squashes into ``[low, high]``. In deterministic mode
-    (evaluation) the action is the squashed location ``low + (high − low)(tanh(μ) + 1) / 2``.
+    (evaluation) the action is the squashed location ``low + (high − low)(tanh(μ) + 1) / 2``. The network options
+    are as in :func:`make_q_network`.
     """
     action_dim = action_spec.shape[-1]
     net = nn.Sequential(
-        MLP(in_features=observation_dim, out_features=2 * action_dim, num_cells=list(num_cells),
-            activation_class=activation),
+        _network(observation_dim, 2 * action_dim, num_cells=num_cells, activation=activation, layer_norm=layer_norm,
+                 observation_loc=observation_loc, observation_scale=observation_scale),
         NormalParamExtractor(),
     )
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])

@@ -58,6 +58,7 @@ from torchrl_wbrm.envs import make_lqr_env
 from torchrl_wbrm.policies import make_mountain_car_env
 from torchrl_wbrm.modules import (
     PolynomialFeatures,
+    build_mlp,
     make_deterministic_actor,
     make_discrete_q_network,
     make_q_network,
@@ -81,7 +82,8 @@ QValueFn = Callable[[TensorDictBase], "tuple[torch.Tensor, torch.Tensor]"]
 
 @dataclass
 class AlgoContext:
-    """What a builder needs from the trainer: the config, the problem's sizes and the Q output bias."""
+    """What a builder needs from the trainer: the config, the problem's sizes, the Q output bias and (with
+    ``q.normalise_observations``) the data's observation mean and standard deviation for the networks' input."""
 
     cfg: WBRMConfig
     observation_dim: int
@@ -90,6 +92,8 @@ class AlgoContext:
     gamma: float
     q_initial_bias: float
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    observation_loc: torch.Tensor | None = None
+    observation_scale: torch.Tensor | None = None
 
 
 @dataclass
@@ -173,17 +177,30 @@ def _q_reader(network: TensorDictModuleBase, params, value_key="state_action_val
     return q_value
 
 
-def _q_network(ctx: AlgoContext) -> ValueOperator:
+def _critic_options(ctx: AlgoContext) -> dict:
+    """The network options of every critic (Q, V, DQN's head): ``q.num_cells``, ``q.activation``, ``q.layer_norm``,
+    the ensemble, ``q.value_scale``, the output bias and the input normalisation."""
     qc = ctx.cfg.q
-    return make_q_network(
-        ctx.observation_dim, ctx.action_dim, num_cells=qc.num_cells, initial_bias=ctx.q_initial_bias
-    ).to(ctx.device)
+    return dict(num_cells=qc.num_cells, activation=qc.activation, layer_norm=qc.layer_norm,
+                initial_bias=ctx.q_initial_bias, num_members=qc.ensemble_size,
+                ensemble_reduction=qc.ensemble_reduction, value_scale=qc.value_scale,
+                observation_loc=ctx.observation_loc, observation_scale=ctx.observation_scale)
+
+
+def _actor_options(ctx: AlgoContext) -> dict:
+    """The network options of every actor: ``q.actor_num_cells``, ``q.actor_activation``, ``q.actor_layer_norm`` and
+    the input normalisation."""
+    qc = ctx.cfg.q
+    return dict(num_cells=qc.actor_num_cells, activation=qc.actor_activation, layer_norm=qc.actor_layer_norm,
+                observation_loc=ctx.observation_loc, observation_scale=ctx.observation_scale)
+
+
+def _q_network(ctx: AlgoContext) -> ValueOperator:
+    return make_q_network(ctx.observation_dim, ctx.action_dim, **_critic_options(ctx)).to(ctx.device)
 
 
 def _deterministic_actor(ctx: AlgoContext):
-    return make_deterministic_actor(ctx.observation_dim, ctx.action_spec, num_cells=ctx.cfg.q.actor_num_cells).to(
-        ctx.device
-    )
+    return make_deterministic_actor(ctx.observation_dim, ctx.action_spec, **_actor_options(ctx)).to(ctx.device)
 
 
 def _bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, updater=None, every_step=False) -> StepFn:
@@ -338,7 +355,7 @@ def build_cql(ctx: AlgoContext) -> Algo:
     spec's box, so with LQR's box [−5, 5]² they cover its centre only.
     """
     qc, cc = ctx.cfg.q, ctx.cfg.baselines.cql
-    actor = make_tanh_normal_actor(ctx.observation_dim, ctx.action_spec, num_cells=qc.actor_num_cells).to(ctx.device)
+    actor = make_tanh_normal_actor(ctx.observation_dim, ctx.action_spec, **_actor_options(ctx)).to(ctx.device)
     loss = CQLLoss(
         actor, _q_network(ctx), action_spec=ctx.action_spec, loss_function=cc.loss_function,
         alpha_init=cc.alpha_init, temperature=cc.temperature, min_q_weight=cc.min_q_weight,
@@ -371,9 +388,9 @@ def build_iql(ctx: AlgoContext) -> Algo:
     ``make_q_network`` on the observation alone, with Q's output bias.
     """
     qc, ic = ctx.cfg.q, ctx.cfg.baselines.iql
-    actor = make_tanh_normal_actor(ctx.observation_dim, ctx.action_spec, num_cells=qc.actor_num_cells).to(ctx.device)
-    value = make_q_network(ctx.observation_dim, 0, num_cells=qc.num_cells, initial_bias=ctx.q_initial_bias,
-                           in_keys=("observation",), out_key="state_value").to(ctx.device)
+    actor = make_tanh_normal_actor(ctx.observation_dim, ctx.action_spec, **_actor_options(ctx)).to(ctx.device)
+    value = make_q_network(ctx.observation_dim, 0, **_critic_options(ctx), in_keys=("observation",),
+                           out_key="state_value").to(ctx.device)
     loss = IQLLoss(actor, _q_network(ctx), value, loss_function=ic.loss_function,
                    temperature=ic.temperature, expectile=ic.expectile)
     loss.make_value_estimator(gamma=ctx.gamma)
@@ -458,7 +475,7 @@ def build_dqn(ctx: AlgoContext) -> Algo:
         grid = ActionGrid.from_env(make_mountain_car_env(), dc.num_bins)
     grid = grid.to(ctx.device)
     q_head = make_discrete_q_network(ctx.observation_dim, grid.num_actions, action_space="categorical",
-                                     num_cells=qc.num_cells, initial_bias=ctx.q_initial_bias).to(ctx.device)
+                                     **_critic_options(ctx)).to(ctx.device)
     loss = DQNLoss(q_head, loss_function=dc.loss_function, delay_value=True)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=qc.target_tau)
@@ -511,7 +528,8 @@ def build_fqi(ctx: AlgoContext) -> Algo:
 
 def _mabo_adversary(ctx: AlgoContext, mc) -> TensorDictModule:
     if mc.adversary == "network":
-        mlp = MLP(in_features=ctx.observation_dim + ctx.action_dim, out_features=1, num_cells=list(mc.critic_num_cells))
+        mlp = build_mlp(ctx.observation_dim + ctx.action_dim, 1, num_cells=mc.critic_num_cells,
+                        activation=ctx.cfg.q.activation, layer_norm=ctx.cfg.q.layer_norm)
         return ValueOperator(mlp, in_keys=["observation", "action"], out_keys=["adversary_output"]).to(ctx.device)
     # the linear span of fixed polynomial features of (x, a)
     return TensorDictModule(PolynomialFeatures(mc.features_degree), in_keys=["observation", "action"],

@@ -6,6 +6,7 @@ again by :func:`validate_config` (allowed names, ranges), which names the settin
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
@@ -44,7 +45,9 @@ class RatioConfig:
         alpha: Basu's α (paper: 0.5; 1 is uLSIF).
         bounds: ``[Φ, Ψ]`` of Assumption 4.1, enforced by the network's output parameterisation.
         parameterisation: the bounded output map of :class:`~torchrl_wbrm.modules.DensityRatioNetwork`.
-        num_cells: hidden widths.
+        num_cells: hidden widths (their number is the depth).
+        activation: the hidden activation, the name of any :mod:`torch.nn` activation (``"ReLU"``, ``"SiLU"``, ...).
+        layer_norm: a LayerNorm after each hidden layer.
         steps, batch_size, lr, weight_decay: the optimiser's budget (Adam).
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of S^b and S^e held out for early stopping.
@@ -65,6 +68,8 @@ class RatioConfig:
     bounds: List[float] = field(default_factory=lambda: [1e-3, 1e3])
     parameterisation: str = "softplus"
     num_cells: List[int] = field(default_factory=lambda: [128, 128])
+    activation: str = "ReLU"
+    layer_norm: bool = False
     steps: int = 1500
     batch_size: int = 512
     lr: float = 1e-3
@@ -93,7 +98,17 @@ class QConfig:
         maximiser: ``"actor"`` (max ≈ Q(x', μ(x'))) or ``"sampled"`` (uniform candidates plus μ(x')).
         num_action_samples: candidates for ``"sampled"``.
         gamma: discount (``None``: the env's, 0.9 for LQR; 0.99 for MountainCar).
-        num_cells, actor_num_cells: hidden widths.
+        num_cells, actor_num_cells: hidden widths of Q and of the actor (their number is the depth). Every algo's
+            critics and actors use them.
+        activation, actor_activation: hidden activations of Q (and of every critic/value network) and of the actor,
+            the name of any :mod:`torch.nn` activation. Q's default is SiLU: Q* of the LQR task is a quadratic and the
+            actor follows ∂Q/∂a, which a piecewise-linear ReLU network fits poorly (``recipes/q_accuracy_study.py``).
+        layer_norm, actor_layer_norm: a LayerNorm after each hidden layer of Q / of the actor.
+        ensemble_size: independently initialised Q networks whose outputs are reduced by ``ensemble_reduction``
+            (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
+        value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
+        normalise_observations: feed every network ``(x − mean) / std`` of D's observations (a fixed input layer).
+        lr_schedule: ``"constant"`` or ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser).
         steps, batch_size, lr, actor_lr: the optimisers' budget (Adam).
         target_tau: SoftUpdate's τ.
         actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
@@ -102,8 +117,7 @@ class QConfig:
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
             (a criterion a user without ground truth can compute).
-        init_bias: start Q's output bias at mean(r) / (1 − γ) (DESIGN.md: otherwise the offset takes thousands of
-            steps).
+        init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations.
     """
 
@@ -114,6 +128,15 @@ class QConfig:
     gamma: Optional[float] = None
     num_cells: List[int] = field(default_factory=lambda: [256, 256])
     actor_num_cells: List[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "SiLU"
+    actor_activation: str = "ReLU"
+    layer_norm: bool = False
+    actor_layer_norm: bool = False
+    ensemble_size: int = 1
+    ensemble_reduction: str = "mean"
+    value_scale: float = 1.0
+    normalise_observations: bool = False
+    lr_schedule: str = "constant"
     steps: int = 3000
     batch_size: int = 256
     lr: float = 1e-3
@@ -321,6 +344,8 @@ _CHOICES = {
     "q.residual": ("squared", "absolute_mean"),
     "q.bootstrap": ("target", "residual_gradient"),
     "q.maximiser": ("actor", "sampled"),
+    "q.ensemble_reduction": ("mean", "min"),
+    "q.lr_schedule": ("constant", "cosine"),
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }
@@ -338,6 +363,18 @@ def validate_config(cfg) -> None:
         value = _get(cfg, key)
         if value not in allowed:
             raise ValueError(f"{key}={value!r} is not allowed: choose one of {list(allowed)}.")
+    from torchrl_wbrm.modules import resolve_activation
+
+    for key in ("q.activation", "q.actor_activation", "ratio.activation"):
+        resolve_activation(_get(cfg, key), key=key)
+    for key in ("q.num_cells", "q.actor_num_cells", "ratio.num_cells"):
+        widths = list(_get(cfg, key))
+        if not all(int(c) > 0 for c in widths):
+            raise ValueError(f"{key} must hold positive widths, got {widths}.")
+    if not cfg.q.ensemble_size >= 1:
+        raise ValueError(f"q.ensemble_size must be >= 1, got {cfg.q.ensemble_size!r}.")
+    if not (cfg.q.value_scale > 0 and math.isfinite(cfg.q.value_scale)):
+        raise ValueError(f"q.value_scale must be finite and > 0, got {cfg.q.value_scale!r}.")
     positive = ["ratio.steps", "ratio.batch_size", "ratio.lr", "q.steps", "q.batch_size", "q.lr", "q.actor_lr",
                 "eval.episodes", "eval.train_episodes", "q.eval_every", "ratio.eval_every", "q.actor_delay",
                 "logger.log_every"]

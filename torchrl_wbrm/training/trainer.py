@@ -20,6 +20,7 @@ import math
 import os
 import random
 import time
+import warnings
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Callable
@@ -162,6 +163,8 @@ class WBRMTrainer:
             bounds=tuple(rc.bounds),
             parameterisation=rc.parameterisation,
             num_cells=rc.num_cells,
+            activation=rc.activation,
+            layer_norm=rc.layer_norm,
         ).to(self.device)
         self.ratio_loss = RobustDensityRatioLoss(
             self.ratio_network,
@@ -186,6 +189,10 @@ class WBRMTrainer:
         qc = self.cfg.q
         d = self.datasets.transitions[:]
         init_bias = d["next", "reward"].mean().item() / (1 - self.gamma) if qc.init_bias else 0.0
+        loc = scale = None
+        if qc.normalise_observations:  # D's statistics, a fixed input layer of every network
+            observations = self.q_train_data["observation"].double()
+            loc, scale = observations.mean(0).float(), observations.std(0).clamp_min(1e-6).float()
         context = AlgoContext(
             cfg=self.cfg,
             observation_dim=self.observation_dim,
@@ -194,8 +201,14 @@ class WBRMTrainer:
             gamma=self.gamma,
             q_initial_bias=init_bias,
             device=self.device,
+            observation_loc=loc,
+            observation_scale=scale,
         )
         self.algo: Algo = build_algo(self.cfg.algo, context)
+        self.schedulers = {}
+        if qc.lr_schedule == "cosine":  # every optimiser annealed over the step budget, stepped once per trainer step
+            self.schedulers = {name: torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=qc.steps)
+                               for name, optimiser in self.algo.optimisers.items()}
         self.q_loss = self.algo.loss
         self.actor = self.algo.policy  # the policy evaluated (deterministic mode)
         self.optimisers = self.algo.optimisers
@@ -337,8 +350,14 @@ class WBRMTrainer:
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
-        """One update of the configured algo on one batch of its buffer."""
-        return self.algo.step(self.q_buffer.sample().to(self.device), step)
+        """One update of the configured algo on one batch of its buffer (then the learning-rate schedules)."""
+        figures = self.algo.step(self.q_buffer.sample().to(self.device), step)
+        if self.schedulers:
+            with warnings.catch_warnings():  # an actor updated every k-th step has not stepped yet at step 1
+                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()` before")
+                for scheduler in self.schedulers.values():
+                    scheduler.step()
+        return figures
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
@@ -460,6 +479,7 @@ class WBRMTrainer:
             "rng": get_rng_state(),
             "q_loss": self.q_loss.state_dict(),
             "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
+            "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
             "data_fingerprint": self.data_fingerprint,
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
         }
@@ -502,6 +522,8 @@ class WBRMTrainer:
         for name, optimiser in self.optimisers.items():
             if name in optimisers:
                 optimiser.load_state_dict(optimisers[name])
+        for name, scheduler in self.schedulers.items():
+            scheduler.load_state_dict(sd["schedulers"][name])
         if self.ratio_network is not None:
             self.ratio_loss.load_state_dict(sd["ratio_loss"])
             self.ratio_optim.load_state_dict(sd["ratio_optim"])

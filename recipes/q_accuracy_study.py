@@ -1,0 +1,284 @@
+"""How accurately does the recipe estimate Q*? Its network and optimisation settings, against the exact LQR optimum.
+
+    python recipes/q_accuracy_study.py                   # LQR blocks: 5 systems x 24 settings x 3 seeds (~75 min here)
+    python recipes/q_accuracy_study.py --blocks mountain_car   # MountainCar: default vs TD3+BC, 5 seeds
+    python recipes/q_accuracy_study.py --quick           # a smoke version (seconds; CI runs it)
+
+Every cell is a set of overrides of ``configs/wbrm_offline.yaml`` on top of the recipe's defaults (the weighted
+method, learned ŵ and its shaping), one factor changed at a time, run for several seeds in parallel processes with
+one torch thread each. Finished cells (their results.json exists) are skipped, so an interrupted study resumes.
+
+Systems: the paper's LQR exp1-3 and two not in the paper: ``lqr_nondiag`` (coupled F, G and R) and ``lqr_large_f``
+(F = 0.9 I). Factors: Q's hidden activation (ReLU, SiLU, ELU, GELU, Tanh; and SiLU in the actor too), the target
+rate τ, the batch size, a cosine learning-rate schedule, the step budget, a two-network ensemble (mean or min),
+reward/target scaling (Q = s · MLP), layer normalisation, and the weight shaping of ŵ (temper / mix / clip,
+unweighted beside them).
+
+Selection uses no ground truth: within each block, the level with the lowest held-out Bellman residual (unweighted
+mean δ² on behaviour episodes held out of D), as a geometric mean over systems of its ratio to the default's. The
+weighting block selects among learned-ratio shapings only (the unweighted residual favours w ≡ 1 by construction).
+The exact optimum only scores: paired regret and Q̂ error relative to Q*'s spread on expert samples.
+
+Outputs in ``--out``: one run directory per cell and seed, ``tables.md`` (mean ± 95% CI over seeds) and
+``q_accuracy_study.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+SYSTEMS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "lqr_large_f"]
+STUDY_BUDGET = [
+    "q.eval_every=100000",  # evaluate at the end only
+    "eval.episodes=1000",
+    "eval.q_samples=5000",
+    "logger=none",
+    "plots=false",
+    "checkpoint_every=0",
+]
+QUICK_BUDGET = [
+    "env.lqr_data.behaviour_episodes=60",
+    "env.lqr_data.expert_episodes=30",
+    "env.lqr_data.parallel_envs=30",
+    "ratio.steps=20",
+    "ratio.eval_every=10",
+    "q.steps=20",
+    "q.eval_every=20",
+    "q.num_cells=[16,16]",
+    "q.actor_num_cells=[16,16]",
+    "eval.episodes=50",
+    "eval.q_samples=300",
+    "logger=none",
+    "plots=false",
+    "checkpoint_every=0",
+]
+DEFAULT = "default"
+#: block -> {level: overrides}; the recipe's default is the level named ``DEFAULT`` of every block (run once)
+BLOCKS: dict[str, dict[str, list[str]]] = {
+    "activation": {
+        "ReLU": ["q.activation=ReLU"],
+        "SiLU (default)": [],
+        "ELU": ["q.activation=ELU"],
+        "GELU": ["q.activation=GELU"],
+        "Tanh": ["q.activation=Tanh"],
+        "SiLU, actor SiLU too": ["q.actor_activation=SiLU"],
+    },
+    "target rate": {
+        "τ=0.005": ["q.target_tau=0.005"],
+        "τ=0.02": ["q.target_tau=0.02"],
+        "τ=0.05 (default)": [],
+        "τ=0.2": ["q.target_tau=0.2"],
+    },
+    "batch size": {
+        "128": ["q.batch_size=128"],
+        "256 (default)": [],
+        "512": ["q.batch_size=512"],
+    },
+    "lr schedule": {
+        "constant (default)": [],
+        "cosine": ["q.lr_schedule=cosine"],
+    },
+    "step budget": {
+        "1500": ["q.steps=1500"],
+        "3000 (default)": [],
+        "6000": ["q.steps=6000"],
+    },
+    "ensemble": {
+        "one network (default)": [],
+        "two, mean": ["q.ensemble_size=2", "q.ensemble_reduction=mean"],
+        "two, min": ["q.ensemble_size=2", "q.ensemble_reduction=min"],
+    },
+    "target scaling": {
+        "Q = MLP (default)": [],
+        "Q = 10·MLP": ["q.value_scale=10.0"],
+    },
+    "layer norm": {
+        "off (default)": [],
+        "on": ["q.layer_norm=true"],
+    },
+    "weighting": {
+        "learned ŵ^0.25 (default)": [],
+        "learned ŵ": ["ratio.temper=1.0"],
+        "learned ŵ^0.5": ["ratio.temper=0.5"],
+        "learned ½ + ½ŵ": ["ratio.temper=1.0", "ratio.mix=0.5"],
+        "learned min(ŵ, 10)": ["ratio.temper=1.0", "ratio.clip=10.0"],
+        "unweighted": ["ratio.source=none"],
+    },
+}
+#: the default and the unweighted residual run 5 seeds (the recipe's goals are stated over 5 seeds)
+FIVE_SEED_LEVELS = {("weighting", "unweighted")}
+MOUNTAIN_CAR = {
+    "wbrm (the recipe's default)": [],
+    "td3bc, same budget": ["algo=td3bc"],
+}
+
+
+def _is_default(level: str) -> bool:
+    return level.endswith("(default)")
+
+
+def build_cells(quick: bool, blocks: list[str]) -> list[dict]:
+    """Each cell once: the default once per system, each other level once per system."""
+    cells = []
+    systems = ["lqr_exp1"] if quick else SYSTEMS
+    lqr_blocks = [b for b in blocks if b in BLOCKS]
+    if quick:
+        lqr_blocks = ["activation"]
+    for env in systems:
+        if lqr_blocks:
+            cells.append({"block": DEFAULT, "env": env, "setting": DEFAULT, "method": DEFAULT,
+                          "overrides": [f"env={env}"], "seeds": 5})
+        for block in lqr_blocks:
+            levels = BLOCKS[block]
+            if quick:
+                levels = {k: levels[k] for k in ("ReLU", "SiLU (default)")}
+            for level, extra in levels.items():
+                if _is_default(level):
+                    continue
+                cells.append({"block": block, "env": env, "setting": block, "method": level,
+                              "overrides": [f"env={env}", *extra],
+                              "seeds": 5 if (block, level) in FIVE_SEED_LEVELS else 3})
+    if "mountain_car" in blocks and not quick:
+        for method, extra in MOUNTAIN_CAR.items():
+            cells.append({"block": "mountain_car", "env": "mountain_car", "setting": "defaults", "method": method,
+                          "overrides": ["env=mountain_car", *extra], "seeds": 5})
+    return cells
+
+
+def _records(out: Path) -> list[dict]:
+    from torchrl_wbrm.training.reporting import load_results
+
+    return [r for r in load_results(out) if "study" in r]
+
+
+def _block_records(records: list[dict], block: str) -> list[dict]:
+    """The block's records, with the default's runs (3 seeds' worth: seeds 0-2) labelled as the block's default."""
+    default_level = next(level for level in BLOCKS[block] if _is_default(level))
+    rows = []
+    for r in records:
+        s = r["study"]
+        if s["block"] == block:
+            rows.append(r)
+        elif s["block"] == DEFAULT:
+            rows.append({**r, "study": {**s, "block": block, "setting": block, "method": default_level}})
+    order = list(BLOCKS[block])
+    return sorted(rows, key=lambda r: (SYSTEMS.index(r["study"]["env"]) if r["study"]["env"] in SYSTEMS else 99,
+                                       order.index(r["study"]["method"]) if r["study"]["method"] in order else 99))
+
+
+def select(records: list[dict], block: str) -> tuple[str, dict]:
+    """The level of ``block`` with the lowest held-out Bellman residual: per system its mean over seeds divided by the
+    default's, then the geometric mean over systems. No ground truth is used."""
+    import numpy as np
+
+    rows = _block_records(records, block)
+    by = {}
+    for r in rows:
+        by.setdefault(r["study"]["method"], {}).setdefault(r["study"]["env"], []).append(
+            r["final"]["held_out_bellman_residual"])
+    default_level = next(level for level in BLOCKS[block] if _is_default(level))
+    base = {env: float(np.mean(v)) for env, v in by.get(default_level, {}).items()}
+    scores = {}
+    for level, envs in by.items():
+        if block == "weighting" and not level.startswith("learned"):
+            continue
+        ratios = [np.mean(v) / base[env] for env, v in envs.items() if env in base]
+        if ratios and len(ratios) == len(base):
+            scores[level] = float(np.exp(np.mean(np.log(ratios))))
+    return min(scores, key=scores.get), scores
+
+
+def tables(out: Path) -> str:
+    from torchrl_wbrm.training.reporting import results_table
+
+    records = _records(out)
+    metrics = {
+        "paired regret": "final.regret",
+        "Q̂ error / spread (expert)": "final.q_error_expert",
+        "Q̂ bias (expert)": "final.q_bias_expert",
+        "held-out Bellman residual": "final.held_out_bellman_residual",
+    }
+    parts = []
+    defaults = [r for r in records if r["study"]["block"] == DEFAULT]
+    if defaults:
+        parts.append("### The recipe's defaults (5 seeds)\n\n" + results_table(
+            sorted(defaults, key=lambda r: SYSTEMS.index(r["study"]["env"])), ["=study.env"],
+            {**metrics, "exact optimum": "final.optimal_return_exact", "return": "final.return"}))
+    selections = ["| block | selected by held-out residual | score of each level (geometric mean of residual / default's) |",
+                  "|---|---|---|"]
+    for block in BLOCKS:
+        rows = _block_records(records, block)
+        if not any(r["study"]["block"] == block for r in records):
+            continue
+        parts.append(f"### {block}\n\n" + results_table(rows, ["=study.env", "=study.method"], metrics))
+        try:
+            chosen, scores = select(records, block)
+        except (KeyError, ValueError, StopIteration):
+            continue
+        scored = ", ".join(f"{k}: {v:.3f}" for k, v in sorted(scores.items(), key=lambda kv: kv[1]))
+        selections.append(f"| {block} | {chosen} | {scored} |")
+    parts.append("### Selection (no ground truth)\n\n" + "\n".join(selections))
+    mc = [r for r in records if r["study"]["block"] == "mountain_car"]
+    if mc:
+        parts.append("### MountainCarContinuous-v0 (100 episodes per seed)\n\n" + results_table(
+            mc, ["=study.method"], {"return": "final.return", "wall s": "wall_seconds"}, digits=2))
+    return "\n\n".join(parts)
+
+
+def plot(out: Path) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.training.plots import plot_ci_rows
+
+    records = _records(out)
+    blocks = [b for b in BLOCKS if any(r["study"]["block"] == b for r in records)]
+    if not blocks:
+        return None
+    heights = [1.0 + 0.35 * len(BLOCKS[b]) for b in blocks]
+    fig, axes = plt.subplots(len(blocks), 1, figsize=(9, sum(heights)), squeeze=False,
+                             gridspec_kw={"height_ratios": heights})
+    for ax, block in zip(axes[:, 0], blocks):
+        rows = {}
+        for r in _block_records(records, block):
+            rows.setdefault(r["study"]["method"], []).append(r["final"]["regret"])
+        plot_ci_rows(ax, rows, log=True)
+        ax.axvline(0.01, color="grey", ls=":", label="goal 0.01")
+        ax.set_title(f"{block}: paired regret, all systems pooled (mean ± 95% CI)", fontsize=9)
+    fig.tight_layout()
+    path = out / "q_accuracy_study.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, ReLU vs SiLU, 1 seed")
+    parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), help=f"any of {[*BLOCKS, 'mountain_car']}")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="results/q_accuracy_study")
+    args = parser.parse_args()
+    unknown = [b for b in args.blocks if b not in BLOCKS and b != "mountain_car"]
+    if unknown:
+        parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, 'mountain_car']}")
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    out = Path(args.out)
+    budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
+    from torchrl_wbrm.training.runs import run_cells
+
+    cells = build_cells(args.quick, args.blocks)
+    for seeds in sorted({1 if args.quick else c["seeds"] for c in cells}, reverse=True):  # the defaults first
+        group = [c for c in cells if (1 if args.quick else c["seeds"]) == seeds]
+        run_cells(group, range(seeds), budget, out, jobs=args.jobs)
+    text = tables(out)
+    (out / "tables.md").write_text(text + "\n")
+    plot(out)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
