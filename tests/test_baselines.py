@@ -1,46 +1,241 @@
-"""Baselines as configurations of the shared trainer (``algo=...``, :mod:`torchrl_wbrm.training.algos`).
+"""Every method (``algo=...``, :mod:`torchrl_wbrm.training.algos`) through the recipe and its trainer.
 
-Each algo runs through :class:`~torchrl_wbrm.training.WBRMTrainer` on a tiny budget and writes its results; then each
-learns LQR exp1 to a checked answer on a modest budget (D = 1,000 behaviour episodes = 18,000 transitions after the
-held-out split, 64-unit networks, batch 256, Adam). Reference points on exp1 (paired regret, 1,000 episodes): the
-behaviour policy ≈ 2.3 (its action noise), the zero-action policy 0.357 ± 0.023, the optimum 0. The thresholds sit
-between what each algo measured (seed 0, one thread; in the test's comments) and the zero-action policy.
+- Each algo runs once through ``recipes/wbrm_offline.py`` itself (one Hydra multirun over all of them, tiny
+  budget, the recipe's default plots and logger) and its ``results.json``, ``history.json``, figures and CSV logs are
+  checked.
+- Each trainer discounts with the env's γ (by value for the Bellman-residual family) and sees the right data
+  (only ``wbrm`` reads the stage-1 weights).
+- Each learns LQR exp1 on the recipe's own config (``configs/wbrm_offline.yaml`` composed by Hydra, so its defaults
+  are the recipe's: for ``wbrm`` the learned ŵ with its shaping ``ratio.temper``) with a small budget. The thresholds
+  are computed, never typed in (:mod:`tests.references`): the exact regret of the behaviour policy's mean action
+  ``a = −½Kx`` (0.083 on exp1; the zero action's is 0.360 and the optimum's 0), and for Q̂ the error of the best
+  constant Q (1 by definition of the error, ``RMS(Q̂ − Q*)/std(Q*)``) and of the behaviour policy's exact Q
+  (about 4 on expert samples: it is lower than Q* by the behaviour's loss). Where a method does not reach a bar on
+  this budget the test is an expected failure (``xfail(strict=True)``: it fails the suite once the method does reach
+  it) and the README reports the measured figure as a finding.
 """
 from __future__ import annotations
 
+import functools
 import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 import torch
-from tensordict import TensorDict
 
 from torchrl_wbrm.envs import LQRConfig, make_lqr_env
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.algos import ALGOS, ActionGrid
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 
+from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
 from tests.test_training import tiny_config
 
-ZERO_ACTION_REGRET = 0.357  # paired regret of a ≡ 0 on exp1 (1,000 episodes, eval seed), ± 0.023
+WITH_Q = sorted(set(ALGOS) - {"bc"})
+BELLMAN_FAMILY = ("wbrm", "brm", "fqi", "mabo")  # WeightedBellmanLoss and its subclass: held-out residual, γ by value
+
+
+# ---------------------------------------------------------------------- the recipe, every algo, plots on
+RECIPE_TINY = [
+    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
+    "ratio.steps=20", "ratio.eval_every=10", "ratio.num_cells=[16,16]",
+    "q.steps=20", "q.eval_every=10", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
+    "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=400", "baselines.cql.num_random=2",
+]
+
+
+@pytest.fixture(scope="module")
+def recipe_runs(tmp_path_factory):
+    """One ``python recipes/wbrm_offline.py -m algo=<all>`` (Hydra's basic launcher, one job after another), with the
+    recipe's defaults for plots and logger; returns (the sweep directory, the completed process)."""
+    out = tmp_path_factory.mktemp("recipe_all_algos")
+    algos = ["wbrm", *sorted(set(ALGOS) - {"wbrm"})]
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m", f"algo={','.join(algos)}", *RECIPE_TINY,
+         f"hydra.sweep.dir={out}", "hydra.sweep.subdir=${algo}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"},
+    )
+    return out, proc
+
+
+def _is_png(path: Path) -> bool:
+    return path.is_file() and path.stat().st_size > 5_000 and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.mark.parametrize("algo", sorted(ALGOS))
-def test_each_algo_runs_through_the_trainer(tmp_path, single_thread, algo):
-    trainer = WBRMTrainer(tiny_config(algo=algo, q={"steps": 20, "eval_every": 10}), tmp_path, progress=False)
-    results = trainer.run()
-    saved = json.loads((tmp_path / "results.json").read_text())
-    assert saved["algo"] == results["algo"] == algo
+def test_each_algo_writes_results_and_figures_through_the_recipe(recipe_runs, algo):
+    out, proc = recipe_runs
+    run_dir = out / algo
+    assert (run_dir / "results.json").is_file(), f"no results for algo={algo}:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+    saved = json.loads((run_dir / "results.json").read_text())
+    assert saved["algo"] == saved["config"]["algo"] == algo and saved["env"] == "lqr_exp1"
     final = saved["final"]
-    assert final["regret"] == final["regret"] and final["return"] == final["return"]  # present, not NaN
-    has_q = algo != "bc"
-    assert ("q_error_expert" in final) == has_q
-    assert (trainer.ratio_network is not None) == (algo == "wbrm")
-    assert ("held_out_bellman_residual" in final) == (algo in ("wbrm", "brm", "fqi", "mabo"))
+    for key in ("return", "return_ci", "regret", "regret_ci", "optimal_return_exact"):
+        assert key in final and final[key] == final[key], key  # present and not NaN
+    assert ("q_error_expert" in final) == (algo != "bc")
+    assert ("held_out_bellman_residual" in final) == (algo in BELLMAN_FAMILY)
     assert saved["ratio"]["source"] == ("learned" if algo == "wbrm" else "none")
-    if algo not in ("wbrm", "bc"):  # baselines never see the stage-1 weights
-        assert (trainer.q_buffer[:]["density_ratio"] == 1).all()
+    assert saved["config"]["plots"] is True  # the recipe's default
+    for figure in ("training_curve.png", "evaluation.png"):
+        assert _is_png(run_dir / figure), (algo, figure)
+    history = json.loads((run_dir / "history.json").read_text())
+    assert [r["step"] for r in history if r["stage"] == "q"] == [10, 20]
+    assert any((run_dir / "logs").rglob("*.csv"))  # the recipe's default csv logger
+    assert proc.stdout.count("paired regret") == len(ALGOS)  # the recipe's summary, once per algo
 
 
+# ---------------------------------------------------------------------- γ and data, per algo
+def _discount(loss) -> float:
+    return float(loss.value_estimator.gamma)
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_each_algo_discounts_with_the_env_gamma_and_reads_its_data(tmp_path, single_thread, algo):
+    trainer = WBRMTrainer(tiny_config(algo=algo), tmp_path, progress=False)
+    gamma = trainer.cfg.env.lqr.gamma  # the env's 0.9, from the env config rather than from the trainer
+    assert trainer.gamma == pytest.approx(gamma)
+    if algo != "bc":
+        assert _discount(trainer.q_loss) == pytest.approx(gamma, abs=1e-7)
+    assert (trainer.ratio_network is not None) == (algo == "wbrm")
+    if algo == "wbrm":
+        return  # its weights: tests/test_training.py
+    trainer._build_q_buffer()
+    batch = trainer.q_buffer.sample()
+    if algo == "bc":
+        assert set(batch.keys()) >= {"observation", "action"} and "next" not in batch.keys()  # S^e, not D
+        return
+    assert (trainer.q_buffer[:]["density_ratio"] == 1).all()  # baselines never see the stage-1 weights
+    if algo in BELLMAN_FAMILY:  # by value: Y − r = γ (1 − terminated) max Q_target(x', ·)
+        loss = trainer.q_loss
+        with torch.no_grad():
+            _, target = loss.bellman_error(batch)
+            next_value = loss.next_state_value(batch)
+        not_terminated = (~batch["next", "terminated"].bool()).float().reshape(-1)
+        reward = batch["next", "reward"].reshape(-1)
+        torch.testing.assert_close(target - reward, gamma * not_terminated * next_value)
+        assert next_value.abs().min() > 1  # Q starts at mean(r)/(1 − γ): a wrong γ cannot hide behind Q ≈ 0
+
+
+# ---------------------------------------------------------------------- learning LQR exp1 on the recipe's config
+# A small budget: 1,000 behaviour episodes (D ≈ 9,000 transitions after the split), 500 expert episodes, 64-unit
+# networks (the recipe's activation and every other default), 1,000 steps; 1,000 paired evaluation episodes.
+LEARN_BUDGET = [
+    "env=lqr_exp1",
+    "env.lqr_data.behaviour_episodes=1000", "env.lqr_data.expert_episodes=500",
+    "ratio.steps=300", "ratio.num_cells=[64,64]",
+    "q.steps=1000", "q.eval_every=1000", "q.num_cells=[64,64]", "q.actor_num_cells=[64,64]",
+    "eval.episodes=1000", "eval.q_samples=2000",
+    "checkpoint_every=0", "plots=false", "logger=none",
+]
+EXTRA = {"cql": ["baselines.cql.num_random=4"]}  # CQL's cost grows with its sampled actions (10 by default)
+
+#: a Q-learning method must beat the behaviour policy's mean action by this factor in regret ...
+REGRET_FACTOR = 2.0
+#: ... and its Q̂ must beat the better of the constant-Q and behaviour-Q baselines by this factor
+Q_FACTOR = 2.0
+
+
+@functools.cache
+def _learned(algo: str) -> dict:
+    """Train ``algo`` once (shared by the regret and the Q̂ test); returns its final figures and the baselines."""
+    torch.set_num_threads(1)
+    cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []))
+    trainer = WBRMTrainer(cfg, tempfile.mkdtemp(prefix=f"learn_{algo}_"), progress=False)
+    results = trainer.run()
+    env = lqr_env(trainer.lqr_config)
+    _, K = env.riccati()
+    data = trainer.cfg.env.lqr_data
+    samples = trainer.eval_samples["expert"]
+    q_star = env.optimal_q(samples["observation"].double(), samples["action"].double())
+    q_behaviour = policy_q(env, data.behaviour_gain_scale * K, data.behaviour_noise_std)(samples["observation"],
+                                                                                         samples["action"])
+    return {
+        "final": results["final"],
+        "weights": results["weights"],
+        "ratio": results["ratio"],
+        "config": results["config"],
+        "regrets": reference_regrets(trainer.lqr_config, behaviour_gain_scale=data.behaviour_gain_scale),
+        "q_constant": relative_q_error(torch.full_like(q_star, q_star.mean().item()), q_star),
+        "q_behaviour": relative_q_error(q_behaviour, q_star),
+    }
+
+
+def _finding(reason: str):
+    return pytest.mark.xfail(strict=True, reason=f"finding (README): {reason}")
+
+
+REGRET_CASES = [
+    "wbrm", "brm", "fqi", "ddpg", "bc",
+    pytest.param("td3bc", marks=_finding("TD3+BC's cloning term ties it to the behaviour's actions")),
+    pytest.param("dqn", marks=_finding("DQN's greedy argmax over 441 grid actions picks unvisited overestimates")),
+    pytest.param("iql", marks=_finding("IQL's advantage-weighted actor stays near the behaviour's actions")),
+    pytest.param("cql", marks=_finding("CQL's conservative actor stays near the behaviour's actions")),
+    pytest.param("mabo", marks=_finding("MABO's |mean w δ|, one noisy moment per minibatch, learns slowly")),
+]
+Q_CASES = [
+    "wbrm", "brm", "ddpg", "dqn",
+    pytest.param("fqi", marks=_finding("FQI's 20 hard target updates in 1,000 steps leave Q̂ short of Q*")),
+    pytest.param("td3bc", marks=_finding("TD3+BC's Q̂ is pulled towards the behaviour's values")),
+    pytest.param("iql", marks=_finding("IQL's expectile target underestimates Q* by design")),
+    pytest.param("cql", marks=_finding("CQL's conservative penalty underestimates Q* by design")),
+    pytest.param("mabo", marks=_finding("MABO's Q̂ error stays near the constant-Q baseline")),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", REGRET_CASES)
+def test_each_method_beats_the_behaviour_policy_in_regret(single_thread, algo):
+    run = _learned(algo)
+    refs, final = run["regrets"], run["final"]
+    assert refs["optimum"] < refs["behaviour_mean"] < refs["zero_action"]  # the computed reference points
+    threshold = refs["behaviour_mean"] / REGRET_FACTOR
+    assert final["regret"] + final["regret_ci"] < threshold, (final["regret"], final["regret_ci"], threshold)
+
+
+FLOOR_CASES = [
+    *sorted(set(ALGOS) - {"dqn"}),
+    pytest.param("dqn", marks=_finding("DQN's greedy argmax over 441 grid actions picks unvisited overestimates")),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", FLOOR_CASES)
+def test_each_method_learns_more_than_the_zero_action(single_thread, algo):
+    """A floor below the bar above, for the methods that miss that bar: a run that learned nothing acts about like
+    a ≡ 0 (the networks start near it), so a broken update is caught here too."""
+    run = _learned(algo)
+    threshold = run["regrets"]["zero_action"] / REGRET_FACTOR
+    assert run["final"]["regret"] + run["final"]["regret_ci"] < threshold, (run["final"]["regret"], threshold)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", Q_CASES)
+def test_each_q_method_estimates_q_star_better_than_the_baselines(single_thread, algo):
+    run = _learned(algo)
+    assert run["q_constant"] == pytest.approx(1.0, abs=1e-3) and run["q_behaviour"] > run["q_constant"]
+    threshold = min(run["q_constant"], run["q_behaviour"]) / Q_FACTOR
+    assert run["final"]["q_error_expert"] < threshold, (run["final"]["q_error_expert"], threshold)
+    assert run["final"]["q_error_behaviour"] < threshold, (run["final"]["q_error_behaviour"], threshold)
+
+
+@pytest.mark.slow
+def test_wbrm_learns_with_the_recipes_learned_and_shaped_weights(single_thread):
+    """The paper's method as the recipe runs it: stage 1 fitted ŵ (early stopping on held-out loss), the recipe's
+    shaping (``ratio.temper``) applied to the stored weights; its regret and Q̂ bars are checked above."""
+    run = _learned("wbrm")
+    recipe = compose_recipe()
+    assert run["config"]["ratio"]["source"] == "learned" and run["ratio"]["source"] == "learned"
+    assert run["config"]["ratio"]["temper"] == recipe.ratio.temper  # the recipe's shaping, whatever it is
+    assert 0 < run["ratio"]["best_step"] <= run["ratio"]["steps_run"]
+    assert run["weights"]["ess_fraction"] < 1 and run["weights"]["mean_behaviour"] == pytest.approx(1.0, rel=1e-3)
+
+
+# ---------------------------------------------------------------------- config and grid
 def test_algo_choice_is_validated():
     from omegaconf import OmegaConf
 
@@ -65,52 +260,3 @@ def test_action_grid_is_the_env_discretizer_and_round_trips():
     td = env.reset().set("action", torch.tensor([2, 0]))
     continuous = env.transform.inv(td.clone())["action"]
     torch.testing.assert_close(continuous, grid(torch.tensor(10)))
-
-
-def _learning_config(algo: str, steps: int, **overrides) -> WBRMConfig:
-    base = {
-        "env": {"lqr_data": {"behaviour_episodes": 2000, "expert_episodes": 100, "parallel_envs": 500}},
-        "ratio": {"source": "none"},
-        "q": {"steps": steps, "eval_every": steps, "batch_size": 256, "lr": 3e-3, "actor_lr": 3e-3,
-              "num_cells": [64, 64], "actor_num_cells": [64, 64]},
-        "eval": {"episodes": 1000, "train_episodes": 100, "q_samples": 2000},
-        "checkpoint_every": 0,
-    }
-    for key, value in overrides.items():
-        base[key] = {**base.get(key, {}), **value} if isinstance(value, dict) else value
-    return tiny_config(algo=algo, **base)
-
-
-# (algo, steps, overrides, regret threshold); measured regret at seed 0 in the comment
-LEARNING = [
-    ("brm", 1000, {}, 0.2),  # unweighted BRM: 0.056 ± 0.008 (seed 1: 0.035), 5 s
-    ("fqi", 1000, {}, 0.2),  # K = 50: 0.127 ± 0.012 (seed 1: 0.047), 5 s
-    ("td3bc", 1000, {}, 0.2),  # 0.109 ± 0.008 (seed 1: 0.104), 7 s
-    ("ddpg", 1000, {}, 0.2),  # 0.064 ± 0.008 (seed 1: 0.061), 6 s
-    ("iql", 1000, {}, 0.2),  # 0.055 ± 0.008 (seed 1: 0.047), 10 s
-    ("cql", 300, {"baselines": {"cql": {"num_random": 4}}}, 0.3),  # 0.211 ± 0.007 (seed 1: 0.059), 9 s (slow per step)
-]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("algo, steps, overrides, threshold", LEARNING, ids=[row[0] for row in LEARNING])
-def test_each_baseline_learns_lqr(tmp_path, single_thread, algo, steps, overrides, threshold):
-    results = WBRMTrainer(_learning_config(algo, steps, **overrides), tmp_path, progress=False).run()
-    final = results["final"]
-    assert final["regret"] < threshold < ZERO_ACTION_REGRET, final["regret"]
-    assert final["regret_ci"] < 0.05  # the paired estimate is sharp enough for the threshold to mean something
-
-
-@pytest.mark.slow
-def test_dqn_learns_q_on_a_covered_grid(tmp_path, single_thread):
-    """Offline DQN learns Q̂ but its greedy policy is poor: Q̂ at grid actions the data rarely visit is overestimated.
-
-    Grid: action box [−1.5, 1.5]² (``env.lqr.action_bound``; the dynamics ignore it, the behaviour data lie inside
-    it), 5 bins per coordinate, 25 joint actions. Measured (seed 0, 1,500 steps, 5 s): Q̂ error / spread of Q* 0.66
-    (a constant Q scores 1), paired regret 4.4 (seed 1: Q̂ error 0.67, regret 0.52; 3,000 steps, 7 bins: 1.4).
-    """
-    cfg = _learning_config("dqn", 1500, q={"lr": 1e-3}, baselines={"dqn": {"num_bins": 5}},
-                           env={"lqr": {"action_bound": 1.5}})
-    final = WBRMTrainer(cfg, tmp_path, progress=False).run()["final"]
-    assert final["q_error_expert"] < 0.8, final["q_error_expert"]
-    assert final["regret"] == final["regret"]
