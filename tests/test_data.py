@@ -106,7 +106,7 @@ def test_save_load_round_trip(tmp_path, lqr_data):
 
 
 def test_load_errors(tmp_path, lqr_data):
-    with pytest.raises(FileNotFoundError, match="No dataset directory"):
+    with pytest.raises(FileNotFoundError, match=r"No dataset directory at .*nowhere"):
         OfflineDatasets.load(tmp_path / "nowhere")
     root = lqr_data.save(tmp_path / "ds")
     meta = root / "metadata.json"
@@ -122,10 +122,10 @@ def test_load_errors(tmp_path, lqr_data):
         OfflineDatasets.load(root)
     meta.write_text(original)
     shutil.rmtree(root / "expert_samples")
-    with pytest.raises(FileNotFoundError, match="missing its 'expert_samples' part"):
+    with pytest.raises(FileNotFoundError, match=r"ds.* is missing its 'expert_samples' part"):
         OfflineDatasets.load(root)
     meta.unlink()
-    with pytest.raises(FileNotFoundError, match="no metadata.json"):
+    with pytest.raises(FileNotFoundError, match=r"ds.*no metadata\.json"):
         OfflineDatasets.load(root)
 
 
@@ -136,9 +136,9 @@ def test_incompatible_and_empty_sets(lqr_data):
         OfflineDatasets.from_tensordicts(d, b, wrong)
     with pytest.raises(ValueError, match="expert_samples set is empty"):
         OfflineDatasets.from_tensordicts(d, b, e[:0])
-    with pytest.raises(KeyError, match="lacks the keys"):
+    with pytest.raises(KeyError, match=r"transitions set lacks the keys .*next.*reward"):
         OfflineDatasets.from_tensordicts(d.exclude(("next", "reward")), b, e)
-    with pytest.raises(KeyError, match="expert_samples set lacks"):
+    with pytest.raises(KeyError, match=r"expert_samples set lacks the keys \W*action"):
         OfflineDatasets.from_tensordicts(d, b, e.exclude("action"))
 
 
@@ -148,7 +148,7 @@ def test_split_by_episode_errors():
         split_by_episode(td, 0.5)
     with pytest.raises(ValueError, match="fraction"):
         split_by_episode(td, 1.0)
-    with pytest.raises(KeyError, match="episode"):
+    with pytest.raises(KeyError, match="needs an 'episode' entry"):
         split_by_episode(TensorDict(batch_size=[4]), 0.5)
 
 
