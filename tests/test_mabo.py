@@ -19,6 +19,7 @@ from test_weighted_bellman import (  # the sibling loss's hand-checked problems 
     _linear_q,
     _linear_quadratic,
     _lq_data,
+    _constant_q_error,
     _q_error,
 )
 from torch import nn
@@ -494,4 +495,6 @@ def test_linear_adversary_learns_q_star_of_a_linear_quadratic_problem_with_sampl
                     num_action_samples=32)
     loss.make_value_estimator(gamma=0.5)
     _minimise(loss, data, lr=0.1)
-    assert _q_error(q_net, q_star, data) < 0.02  # RMS(Q̂ − Q*) / std(Q*); measured 3.8e-3 (≤ 4.5e-3 over 3 seeds)
+    # RMS(Q̂ − Q*) / std(Q*); measured 3.8e-3 (≤ 4.5e-3 over 3 seeds); Q* is in the class, so the bar is 50× below
+    # the constant Q's error
+    assert _q_error(q_net, q_star, data) < _constant_q_error(q_star, data) / 50
