@@ -1,48 +1,5 @@
-"""Shaping of the stored per-sample weights ŵ over D (applied once, after stage 1)."""
-from __future__ import annotations
-
-import torch
+"""Kept for imports written before stage 1 became public: :func:`shape_weights` lives in
+:mod:`torchrl_wbrm.ratio.weights`."""
+from torchrl_wbrm.ratio.weights import shape_weights
 
 __all__ = ["shape_weights"]
-
-
-def shape_weights(
-    w: torch.Tensor,
-    *,
-    temper: float = 1.0,
-    clip: float | None = None,
-    mix: float = 0.0,
-    self_normalise: bool = True,
-) -> torch.Tensor:
-    """``w -> (1 - mix) * v / mean(v) + mix`` with ``v = min(w^temper, clip)``, then divided by its mean over D if ``self_normalise``.
-
-    - ``temper`` (λ in ŵ^λ, 0 < λ ≤ 1) flattens a peaked ratio while keeping its order;
-    - ``clip`` caps single samples' influence;
-    - ``mix`` puts a floor under every sample's weight (DESIGN.md: what mattered in first measurements was a floor
-      on every weight, not the effective sample size);
-    - ``self_normalise`` makes the weights average 1 over D, so the loss's scale (and learning rate) does not
-      depend on how well ŵ's behaviour mean came out.
-
-    All are off by default except self-normalisation.
-    """
-    if not torch.isfinite(w).all() or (w < 0).any():
-        raise ValueError("Weights must be finite and non-negative before shaping.")
-    if not 0.0 < temper <= 1.0:
-        raise ValueError(f"temper must lie in (0, 1], got {temper}.")
-    if not 0.0 <= mix <= 1.0:
-        raise ValueError(f"mix must lie in [0, 1], got {mix}.")
-    out = w.double()
-    if temper != 1.0:
-        out = out.pow(temper)
-    if clip is not None:
-        if not clip > 0:
-            raise ValueError(f"clip must be > 0, got {clip}.")
-        out = out.clamp_max(clip)
-    if mix:
-        out = (1.0 - mix) * out / out.mean() + mix
-    if self_normalise:
-        mean = out.mean()
-        if not mean > 0:
-            raise ValueError("Cannot self-normalise weights whose mean is 0.")
-        out = out / mean
-    return out.to(w.dtype)

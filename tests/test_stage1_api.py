@@ -1,0 +1,185 @@
+"""Stage 1 as a library (torchrl_wbrm.ratio): fit ŵ from two datasets or replay buffers with held-out early stopping,
+compute it over a dataset in chunks, shape it and store it in a replay buffer's storage; the trainer uses the same
+pieces."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+
+from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.ratio import (
+    DensityRatioFitter,
+    NonFiniteWeightsError,
+    compute_density_ratio,
+    fit_density_ratio,
+    holdout_split,
+    shape_weights,
+    store_density_ratio,
+)
+
+EXPERT_STD, BEHAVIOUR_STD = 0.3, 1.0
+
+
+def _samples(n: int, std: float, seed: int) -> TensorDict:
+    """x ~ N(0, 1), a = −x + N(0, std²): the ratio of two such sets is N(a; −x, 0.3²) / N(a; −x, 1)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(n, 1, generator=g)
+    return TensorDict({"observation": x, "action": -x + std * torch.randn(n, 1, generator=g)}, [n])
+
+
+def _true_ratio(td: TensorDict) -> torch.Tensor:
+    z = (td["action"] + td["observation"]).reshape(-1).double()
+    e, b = torch.distributions.Normal(0.0, EXPERT_STD), torch.distributions.Normal(0.0, BEHAVIOUR_STD)
+    return (e.log_prob(z) - b.log_prob(z)).exp()
+
+
+def _buffer(td: TensorDict, storage=LazyTensorStorage) -> TensorDictReplayBuffer:
+    rb = TensorDictReplayBuffer(storage=storage(td.shape[0]), batch_size=32)
+    rb.extend(td)
+    return rb
+
+
+@pytest.fixture(scope="module")
+def gaussian_fit():
+    torch.manual_seed(0)
+    behaviour, expert = _samples(4000, BEHAVIOUR_STD, 1), _samples(2000, EXPERT_STD, 2)
+    network = DensityRatioNetwork(1, 1, bounds=(1e-3, 1e2), num_cells=(32, 32))
+    fit = fit_density_ratio(behaviour, expert, network, steps=600, eval_every=25, patience=100, batch_size=256,
+                            lr=3e-3, seed=0)
+    return fit, behaviour
+
+
+def test_fit_recovers_a_known_ratio(gaussian_fit):
+    """Against the exact ratio of two Gaussians on fresh behaviour samples: small relative L2 error, mean ≈ 1 under
+    the behaviour law, and far better than ŵ ≡ 1."""
+    fit, _ = gaussian_fit
+    fresh = _samples(20_000, BEHAVIOUR_STD, 3)
+    with torch.no_grad():
+        w_hat = fit.network(fresh.clone())["density_ratio"].reshape(-1).double()
+    w = _true_ratio(fresh)
+    error = ((w_hat - w).pow(2).mean().sqrt() / w.pow(2).mean().sqrt()).item()
+    constant = ((1 - w).pow(2).mean().sqrt() / w.pow(2).mean().sqrt()).item()
+    assert error < 0.35 and error < constant / 2, (error, constant)
+    assert w_hat.mean().item() == pytest.approx(1.0, abs=0.15)
+    assert fit.diagnostics["held_out_loss"] == pytest.approx(fit.best_loss, abs=1e-6)
+    assert fit.best_loss < 1 - (1 + 1 / 0.5)  # below the loss of ŵ ≡ 1
+    assert {"density_ratio_behaviour_mean", "density_ratio_expert_mean", "density_ratio_ess"} <= fit.diagnostics.keys()
+    assert [r["step"] for r in fit.history] == list(range(25, 601, 25)) and fit.steps_run == 600
+
+
+def test_early_stopping_restores_the_best_held_out_state():
+    """With a learning rate that overfits and a short patience the fit stops early and returns the network of its
+    best evaluation (recomputed here), not its last."""
+    torch.manual_seed(0)
+    behaviour, expert = _samples(300, BEHAVIOUR_STD, 1), _samples(150, EXPERT_STD, 2)
+    network = DensityRatioNetwork(1, 1, num_cells=(64, 64))
+    fitter = DensityRatioFitter(network, behaviour, expert, batch_size=64, lr=0.05, patience=2,
+                                holdout_fraction=0.3)
+    fit = fitter.fit(steps=2000, eval_every=5)
+    assert fit.stopped_early and fit.steps_run < 2000
+    losses = [r["held_out_loss"] for r in fit.history]
+    assert min(losses) == pytest.approx(fit.best_loss) and losses[-1] > fit.best_loss + 1e-4
+    assert fit.history[losses.index(min(losses))]["step"] == fit.best_step
+    with torch.no_grad():
+        now = fitter.loss_module(fitter.holdout)["loss_density_ratio"].item()
+    assert now == pytest.approx(fit.best_loss, abs=1e-6)
+
+
+def test_buffers_and_tensordicts_give_the_same_fit():
+    behaviour, expert = _samples(400, BEHAVIOUR_STD, 1), _samples(200, EXPERT_STD, 2)
+
+    def run(b, e):
+        torch.manual_seed(0)
+        fit = fit_density_ratio(b, e, steps=30, eval_every=10, batch_size=32, num_cells=(16,), seed=5)
+        return fit.network.state_dict(), fit.best_loss
+
+    (sd_a, loss_a), (sd_b, loss_b) = run(behaviour, expert), run(_buffer(behaviour), _buffer(expert))
+    assert loss_a == loss_b and all(torch.equal(sd_a[k], sd_b[k]) for k in sd_a)
+
+
+def test_state_dict_resumes_bit_identically():
+    """20 + 20 steps with a state_dict save/load in between (and the global RNG restored) end where 40 steps do."""
+    behaviour, expert = _samples(400, BEHAVIOUR_STD, 1), _samples(200, EXPERT_STD, 2)
+
+    def fitter():
+        torch.manual_seed(0)
+        return DensityRatioFitter(DensityRatioNetwork(1, 1, num_cells=(16,)), behaviour, expert, batch_size=32,
+                                  generator=torch.Generator().manual_seed(1))
+
+    full = fitter()
+    full.fit(steps=40, eval_every=10)
+    first = fitter()
+    first.fit(steps=20, eval_every=10)
+    state, rng = first.state_dict(), torch.get_rng_state()
+    second = fitter()
+    second.load_state_dict(state)
+    torch.set_rng_state(rng)
+    second.fit(steps=40, eval_every=10)
+    a, b = full.network.state_dict(), second.network.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert full.best["loss"] == second.best["loss"] and full.best["step"] == second.best["step"]
+    assert second.num_steps == 40
+
+
+def test_holdout_split_is_disjoint_and_seeded():
+    td = TensorDict({"x": torch.arange(100)}, [100])
+    train, held = holdout_split(td, 0.1, torch.Generator().manual_seed(3))
+    assert held.shape == (10,) and train.shape == (90,)
+    assert set(train["x"].tolist()).isdisjoint(held["x"].tolist())
+    again = holdout_split(td, 0.1, torch.Generator().manual_seed(3))[1]
+    assert torch.equal(again["x"], held["x"])
+    with pytest.raises(ValueError, match="fraction"):
+        holdout_split(td, 1.0)
+
+
+def test_compute_density_ratio_in_chunks_equals_one_pass():
+    torch.manual_seed(0)
+    net = DensityRatioNetwork(1, 1, num_cells=(8,))
+    data = _samples(1000, BEHAVIOUR_STD, 4)
+    with torch.no_grad():
+        whole = net(data.select("observation", "action"))["density_ratio"]
+    chunked = compute_density_ratio(net, _buffer(data), chunk_size=77)
+    assert chunked.shape == (1000, 1)
+    torch.testing.assert_close(chunked, whole)
+
+
+@pytest.mark.parametrize("storage", [LazyTensorStorage, LazyMemmapStorage])
+@pytest.mark.parametrize("key", ["density_ratio", "priority_weight"])
+def test_store_in_a_replay_buffer_under_a_chosen_key_with_shaping(storage, key):
+    """The shaped weights land in the buffer's storage row by row (every sample carries its own), default shape [N]."""
+    torch.manual_seed(0)
+    net = DensityRatioNetwork(1, 1, num_cells=(8,))
+    with torch.no_grad():
+        net.module.mlp[-1].weight.mul_(30.0)  # a spread-out ratio, so that the shaping matters
+    data = _samples(200, BEHAVIOUR_STD, 5)
+    data["row"] = torch.arange(200)
+    rb = _buffer(data, storage)
+    stored = store_density_ratio(rb, ratio_network=net, key=key, temper=0.5, clip=3.0, mix=0.1)
+    raw = compute_density_ratio(net, data)
+    expected = shape_weights(raw, temper=0.5, clip=3.0, mix=0.1).reshape(-1)
+    torch.testing.assert_close(stored, expected)
+    assert stored.shape == (200,) and stored.mean().item() == pytest.approx(1.0, rel=1e-5)
+    batch = rb.sample()
+    torch.testing.assert_close(batch[key], expected[batch["row"]])
+    again = store_density_ratio(rb, torch.ones(200), key=key)  # an existing entry is overwritten in place
+    assert (rb[:][key] == 1).all() and again.shape == (200,)
+
+
+def test_store_in_a_tensordict_keepdim_dtype_and_errors():
+    td = _samples(4, BEHAVIOUR_STD, 6)
+    stored = store_density_ratio(td, torch.tensor([1.0, 2.0, 3.0, 2.0], dtype=torch.float64), keepdim=True,
+                                 dtype=torch.float32)
+    assert td["density_ratio"].shape == (4, 1) and td["density_ratio"].dtype == torch.float32
+    torch.testing.assert_close(stored, torch.tensor([[0.5], [1.0], [1.5], [1.0]]))
+    big = TensorDict({}, [100_000])
+    one_hot = torch.zeros(100_000, dtype=torch.float16)
+    one_hot[0] = 1.0
+    with pytest.raises(NonFiniteWeightsError):  # self-normalised, 1e5 overflows float16: nothing is stored
+        store_density_ratio(big, one_hot, key="w")
+    assert "w" not in big.keys()
+    with pytest.raises(ValueError, match="4 rows"):
+        store_density_ratio(td, torch.ones(3))
+    with pytest.raises(ValueError, match="ratio_network"):
+        store_density_ratio(td)

@@ -1,0 +1,27 @@
+"""Stage 1 of WBRM as a library: fit ŵ ≈ dP^e/dP^b, compute it over a dataset, shape it and store it.
+
+Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives these pieces from its own loop).
+
+- :func:`fit_density_ratio` / :class:`DensityRatioFitter`: the robust (Basu) density-ratio loss on behaviour and
+  expert state-actions (TensorDicts or replay buffers), a held-out split, early stopping on the held-out loss;
+  returns the best network and its diagnostics (:class:`DensityRatioFit`).
+- :func:`compute_density_ratio`: ŵ over every row of a dataset, in chunks.
+- :func:`store_density_ratio`: shape (:func:`shape_weights`: temper, clip, mix, self-normalise) and store it in a
+  TensorDict or a replay buffer's storage under ``"density_ratio"`` (for ``WeightedBellmanLoss``) or
+  ``"priority_weight"`` (for TorchRL's own losses, which then become ŵ-weighted).
+"""
+from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
+from torchrl_wbrm.ratio.storing import NonFiniteWeightsError, compute_density_ratio, store_density_ratio
+from torchrl_wbrm.ratio.weights import shape_weights
+
+__all__ = [
+    "DensityRatioFit",
+    "DensityRatioFitter",
+    "NonFiniteWeightsError",
+    "as_tensordict",
+    "compute_density_ratio",
+    "fit_density_ratio",
+    "holdout_split",
+    "shape_weights",
+    "store_density_ratio",
+]

@@ -1,0 +1,350 @@
+"""Stage 1 without a trainer: fit ŵ ≈ dP^e/dP^b on behaviour and expert state-actions, with a held-out split and
+early stopping.
+
+:class:`DensityRatioFitter` holds the pieces (loss, optimiser, training buffers, held-out sets, best state) and
+exposes one gradient step (:meth:`~DensityRatioFitter.step`), one held-out evaluation with best-state tracking and
+patience (:meth:`~DensityRatioFitter.evaluate`), ``state_dict``/``load_state_dict`` for checkpoints and a
+:meth:`~DensityRatioFitter.fit` loop; :class:`~torchrl_wbrm.training.WBRMTrainer` drives the same object from its
+own loop (progress bar, logging, checkpoints). :func:`fit_density_ratio` is the one-call version.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.data import ReplayBuffer
+
+from torchrl_wbrm.data import make_replay_buffer
+from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.objectives import RobustDensityRatioLoss
+
+__all__ = ["DensityRatioFit", "DensityRatioFitter", "as_tensordict", "fit_density_ratio", "holdout_split"]
+
+
+def as_tensordict(data: TensorDictBase | ReplayBuffer) -> TensorDictBase:
+    """The samples of a TensorDict (returned as is) or of a replay buffer (its whole storage, ``buffer[:]``)."""
+    if isinstance(data, TensorDictBase):
+        return data
+    if isinstance(data, ReplayBuffer):
+        if len(data) == 0:
+            raise ValueError("The replay buffer is empty.")
+        return data[:]
+    raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(data).__name__}.")
+
+
+def holdout_split(data: TensorDictBase, fraction: float, generator: torch.Generator | None = None):
+    """``(train, held_out)``: a random ``fraction`` of the rows of ``data`` (at least one) held out.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"x": torch.arange(10)}, [10])
+        >>> train, held_out = holdout_split(td, 0.2, torch.Generator().manual_seed(0))
+        >>> train.shape, held_out.shape
+        (torch.Size([8]), torch.Size([2]))
+    """
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"The held-out fraction must lie in (0, 1), got {fraction}.")
+    n = data.shape[0]
+    if n < 2:
+        raise ValueError(f"Cannot hold out a share of {n} sample(s).")
+    perm = torch.randperm(n, generator=generator)
+    n_hold = max(1, int(round(fraction * n)))
+    return data[perm[n_hold:]], data[perm[:n_hold]]
+
+
+class _PairedBufferSampler:
+    """``TensorDict({"behaviour": ..., "expert": ...})`` of ``keys``: one ``sample()`` of each buffer, in that order."""
+
+    def __init__(self, behaviour: ReplayBuffer, expert: ReplayBuffer, batch_size: int, keys: Sequence[NestedKey]):
+        self.behaviour, self.expert, self.batch_size, self.keys = behaviour, expert, int(batch_size), list(keys)
+
+    def sample(self) -> TensorDict:
+        b = self.behaviour.sample(self.batch_size).select(*self.keys)
+        e = self.expert.sample(self.batch_size).select(*self.keys)
+        return TensorDict({"behaviour": b, "expert": e}, batch_size=[self.batch_size])
+
+
+@dataclass
+class DensityRatioFit:
+    """What :meth:`DensityRatioFitter.fit` returns.
+
+    Attributes:
+        network: the ratio network, holding its best held-out state.
+        loss_module: the :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` around it.
+        best_loss: the best held-out loss; ``best_step``: the step it was reached at.
+        steps_run: gradient steps taken (fewer than asked when early stopping stopped the fit).
+        stopped_early: whether ``patience`` evaluations without improvement ended the fit.
+        diagnostics: the loss's figures on the held-out sets with the best network (``"held_out_loss"``,
+            ``"density_ratio_behaviour_mean"`` — about 1 for a good fit —, ``"density_ratio_expert_mean"``,
+            ``"density_ratio_ess"``, ...).
+        history: one record per evaluation: ``step``, ``held_out_loss`` and the training batch's figures.
+    """
+
+    network: TensorDictModule
+    loss_module: RobustDensityRatioLoss
+    best_loss: float
+    best_step: int | None
+    steps_run: int
+    stopped_early: bool
+    diagnostics: dict[str, float]
+    history: list[dict] = field(default_factory=list)
+
+
+class DensityRatioFitter:
+    r"""Fits a ratio network ŵ(x, a) ≈ dP^e/dP^b with the robust (Basu) loss, keeping the best held-out state.
+
+    Args:
+        loss_module (RobustDensityRatioLoss or TensorDictModule): the stage-1 loss, or a ratio network (wrapped in
+            ``RobustDensityRatioLoss(network)``, the paper's α = ½).
+        behaviour: behaviour state-actions S^b: a TensorDict or a torchrl replay buffer (its whole storage is read).
+        expert: expert state-actions S^e, the same way.
+
+    Keyword Args:
+        batch_size (int): samples drawn from *each* set per step. Defaults to ``512``.
+        optimizer (torch.optim.Optimizer, optional): defaults to ``Adam(lr=lr, weight_decay=weight_decay)`` over the
+            loss's parameters.
+        lr, weight_decay (float): the default optimiser's settings. Default to ``1e-3`` and ``0``.
+        grad_clip (float, optional): max gradient norm per step (``None``: off).
+        holdout_fraction (float): share of each set held out for early stopping. Defaults to ``0.1``.
+        holdout (tuple of TensorDict, optional): explicit ``(behaviour, expert)`` held-out sets; then all of
+            ``behaviour`` and ``expert`` are trained on and ``holdout_fraction`` is unused.
+        generator (torch.Generator, optional): draws the held-out split (defaults to a generator seeded 0).
+        patience (int): evaluations without an improvement of more than ``min_improvement`` before
+            :meth:`evaluate` reports ``"stop"``. Defaults to ``5``.
+        min_improvement (float): Defaults to ``1e-6``.
+        device (torch.device, optional): where batches go; defaults to the loss's parameters' device.
+
+    The training sets live in two ``TensorDictReplayBuffer`` (``behaviour_buffer``, ``expert_buffer``); ``sampler``
+    draws the paired batches ``TensorDict({"behaviour": ..., "expert": ...})`` and may be replaced by any object with
+    a ``sample()`` returning such a batch. Only the ratio network's ``in_keys`` are kept.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_wbrm.modules import DensityRatioNetwork
+        >>> from torchrl_wbrm.ratio import DensityRatioFitter
+        >>> _ = torch.manual_seed(0)
+        >>> def samples(n, scale):  # 1-d states; the expert acts close to a = -x, the behaviour policy noisily
+        ...     x = torch.randn(n, 1)
+        ...     return TensorDict({"observation": x, "action": -x + scale * torch.randn(n, 1)}, [n])
+        >>> behaviour, expert = samples(2000, 1.0), samples(1000, 0.2)
+        >>> fitter = DensityRatioFitter(DensityRatioNetwork(1, 1, num_cells=(32,)), behaviour, expert,
+        ...                             batch_size=256, lr=1e-2)
+        >>> fit = fitter.fit(steps=200, eval_every=20)
+        >>> fit.best_loss < fitter.initial_loss  # ŵ ≡ 1 at the start
+        True
+        >>> w = fit.network(expert.select("observation", "action"))["density_ratio"]
+        >>> bool(w.mean() > 1.5)  # the expert's state-actions are over-represented in its own data
+        True
+    """
+
+    def __init__(
+        self,
+        loss_module: RobustDensityRatioLoss | TensorDictModule,
+        behaviour: TensorDictBase | ReplayBuffer,
+        expert: TensorDictBase | ReplayBuffer,
+        *,
+        batch_size: int = 512,
+        optimizer: torch.optim.Optimizer | None = None,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        grad_clip: float | None = None,
+        holdout_fraction: float = 0.1,
+        holdout: tuple[TensorDictBase, TensorDictBase] | None = None,
+        generator: torch.Generator | None = None,
+        patience: int = 5,
+        min_improvement: float = 1e-6,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if not isinstance(loss_module, RobustDensityRatioLoss):
+            loss_module = RobustDensityRatioLoss(loss_module)
+        if batch_size <= 0:
+            raise ValueError(f"batch_size must be > 0, got {batch_size}.")
+        if patience < 1:
+            raise ValueError(f"patience must be >= 1, got {patience}.")
+        self.loss_module = loss_module
+        self.network = loss_module.ratio_network
+        params = list(loss_module.parameters())
+        self.device = torch.device(device) if device is not None else params[0].device
+        self.optimizer = optimizer if optimizer is not None else torch.optim.Adam(
+            params, lr=lr, weight_decay=weight_decay)
+        self.grad_clip = grad_clip
+        self.patience = int(patience)
+        self.min_improvement = float(min_improvement)
+        self.keys = list(self.network.in_keys)
+        b, e = as_tensordict(behaviour), as_tensordict(expert)
+        if holdout is None:
+            generator = generator if generator is not None else torch.Generator().manual_seed(0)
+            b_train, b_hold = holdout_split(b, holdout_fraction, generator)
+            e_train, e_hold = holdout_split(e, holdout_fraction, generator)
+        else:
+            (b_train, e_train), (b_hold, e_hold) = (b, e), holdout
+        self.behaviour_buffer = make_replay_buffer(b_train.select(*self.keys))
+        self.expert_buffer = make_replay_buffer(e_train.select(*self.keys))
+        self.batch_size = int(batch_size)
+        self.sampler = _PairedBufferSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, self.keys)
+        self.holdout = TensorDict(
+            {"behaviour": b_hold.select(*self.keys), "expert": e_hold.select(*self.keys)}, batch_size=[]
+        ).to(self.device)
+        self.num_steps = 0
+        #: the early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, and
+        #: ``bad``, the evaluations since the last improvement
+        self.best = {"loss": math.inf, "state": copy.deepcopy(self.network.state_dict()), "bad": 0}
+
+    @property
+    def initial_loss(self) -> float:
+        """The loss of ŵ ≡ 1 (where :class:`~torchrl_wbrm.modules.DensityRatioNetwork` starts): ``1 − (1 + 1/α)``
+        for the Basu loss, ``1`` for KL; a fit must end below it."""
+        alpha = self.loss_module.alpha
+        return 1.0 if alpha == "kl" else 1.0 - (1.0 + 1.0 / alpha)
+
+    def step(self) -> dict[str, torch.Tensor]:
+        """One gradient step on a paired batch; returns the loss's scalar figures (detached tensors)."""
+        batch = self.sampler.sample()
+        if batch.device != self.device:
+            batch = batch.to(self.device)
+        out = self.loss_module(batch)
+        loss = out["loss_density_ratio"]
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.grad_clip:
+            torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.grad_clip)
+        self.optimizer.step()
+        self.num_steps += 1
+        return {k: v.detach() for k, v in out.items() if v.ndim == 0}
+
+    @torch.no_grad()
+    def held_out_figures(self) -> dict[str, float]:
+        """The loss's figures on the held-out sets with the network's current state (``"held_out_loss"`` first)."""
+        out = self.loss_module(self.holdout)
+        figures = {"held_out_loss": out["loss_density_ratio"].item()}
+        figures.update({k: v.item() for k, v in out.items() if k != "loss_density_ratio" and v.ndim == 0})
+        return figures
+
+    @torch.no_grad()
+    def evaluate(self, step: int | None = None) -> dict:
+        """Score the held-out sets, keep the network's state if it is the best so far, count patience.
+
+        ``step`` (defaults to the steps taken) is recorded with a new best. Returns ``{"held_out_loss",
+        "improved", "stop"}``; ``"stop"`` is ``True`` once ``patience`` evaluations in a row brought no improvement.
+        A non-finite held-out loss never becomes the best (it counts as no improvement); the caller decides
+        whether to stop on it (:meth:`fit` raises).
+        """
+        step = self.num_steps if step is None else int(step)
+        held_out = self.loss_module(self.holdout)["loss_density_ratio"].item()
+        best = self.best
+        improved = held_out < best["loss"] - self.min_improvement
+        if improved:
+            best.update(loss=held_out, state=copy.deepcopy(self.network.state_dict()), bad=0, step=step)
+        else:
+            best["bad"] += 1
+        return {"held_out_loss": held_out, "improved": improved, "stop": best["bad"] >= self.patience}
+
+    def best_network(self) -> TensorDictModule:
+        """Load the best held-out state into the network (shared with the loss) and return the network."""
+        self.network.load_state_dict(self.best["state"])
+        return self.network
+
+    def state_dict(self) -> dict:
+        """Everything a resumed fit needs: the loss's and optimiser's states, the early-stopping record, the step."""
+        return {
+            "loss_module": self.loss_module.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "best": copy.deepcopy(self.best),
+            "num_steps": self.num_steps,
+        }
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.loss_module.load_state_dict(state_dict["loss_module"])
+        self.optimizer.load_state_dict(state_dict["optimizer"])
+        self.best = copy.deepcopy(state_dict["best"])
+        self.num_steps = int(state_dict.get("num_steps", 0))
+
+    def fit(
+        self,
+        steps: int,
+        *,
+        eval_every: int = 100,
+        callback: Callable[[int, dict], None] | None = None,
+    ) -> DensityRatioFit:
+        """Step until ``steps`` steps in all (continuing from :attr:`num_steps`) or early stopping, evaluating every
+        ``eval_every`` steps and at the last one; end with the best held-out state loaded.
+
+        ``callback(step, record)`` is called after each evaluation (``record``: the step's training figures and
+        ``held_out_loss``). A non-finite held-out loss raises :class:`FloatingPointError`.
+        """
+        if eval_every <= 0:
+            raise ValueError(f"eval_every must be > 0, got {eval_every}.")
+        history, stopped = [], False
+        while self.num_steps < steps:
+            figures = self.step()
+            step = self.num_steps
+            if step % eval_every == 0 or step == steps:
+                result = self.evaluate(step)
+                record = {"step": step, **{k: float(v) for k, v in figures.items()},
+                          "held_out_loss": result["held_out_loss"]}
+                history.append(record)
+                if callback is not None:
+                    callback(step, record)
+                if not math.isfinite(result["held_out_loss"]):
+                    raise FloatingPointError(f"The held-out density-ratio loss is {result['held_out_loss']} at "
+                                             f"step {step}; lower the learning rate or clip the gradients.")
+                if result["stop"]:
+                    stopped = True
+                    break
+        network = self.best_network()
+        return DensityRatioFit(
+            network=network, loss_module=self.loss_module, best_loss=self.best["loss"],
+            best_step=self.best.get("step"), steps_run=self.num_steps, stopped_early=stopped,
+            diagnostics=self.held_out_figures(), history=history,
+        )
+
+
+def fit_density_ratio(
+    behaviour: TensorDictBase | ReplayBuffer,
+    expert: TensorDictBase | ReplayBuffer,
+    ratio_network: TensorDictModule | None = None,
+    *,
+    steps: int = 1500,
+    eval_every: int = 100,
+    patience: int = 5,
+    batch_size: int = 512,
+    lr: float = 1e-3,
+    weight_decay: float = 0.0,
+    grad_clip: float | None = 10.0,
+    holdout_fraction: float = 0.1,
+    alpha: float | str = 0.5,
+    bounds: tuple[float, float] = (1e-3, 1e3),
+    num_cells: Sequence[int] = (128, 128),
+    seed: int = 0,
+    device: torch.device | str | None = None,
+    **loss_kwargs,
+) -> DensityRatioFit:
+    """Fit ŵ ≈ dP^e/dP^b on two datasets (TensorDicts or replay buffers of ``"observation"``, ``"action"``) and
+    return the best held-out network with its diagnostics (:class:`DensityRatioFit`).
+
+    Without a ``ratio_network`` a :class:`~torchrl_wbrm.modules.DensityRatioNetwork` with ``bounds`` and
+    ``num_cells`` is built from the data's observation and action sizes (initialised from torch's global
+    generator). ``alpha`` and ``loss_kwargs`` go to :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss`;
+    ``seed`` seeds the held-out split. The defaults are the recipe's stage 1 (``RatioConfig``).
+    """
+    if ratio_network is None:
+        b = as_tensordict(behaviour)
+        ratio_network = DensityRatioNetwork(b["observation"].shape[-1], b["action"].shape[-1], bounds=tuple(bounds),
+                                            num_cells=tuple(num_cells))
+    if device is not None:
+        ratio_network = ratio_network.to(device)
+    loss = RobustDensityRatioLoss(ratio_network, alpha=alpha, **loss_kwargs)
+    fitter = DensityRatioFitter(
+        loss, behaviour, expert, batch_size=batch_size, lr=lr, weight_decay=weight_decay, grad_clip=grad_clip,
+        holdout_fraction=holdout_fraction, generator=torch.Generator().manual_seed(seed), patience=patience,
+        device=device,
+    )
+    return fitter.fit(steps, eval_every=eval_every)
