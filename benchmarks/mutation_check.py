@@ -4,6 +4,7 @@
     python benchmarks/mutation_check.py --only drop_weights skip_restore
     python benchmarks/mutation_check.py --full          # each mutation against the whole suite (-x; much slower)
     python benchmarks/mutation_check.py --list
+    python benchmarks/mutation_check.py --dry-run       # apply each mutation to a copy and count the lines it changes
 
 For each breakage in :data:`MUTATIONS` it copies the working tree to a temporary directory, applies the one-line
 change there (every copy of the line, where the same code exists on two paths, e.g. a fast and a TensorDict path),
@@ -77,8 +78,8 @@ MUTATIONS = [
     ),
     Mutation(
         "skip_restore", "stage 1 keeps its last state, not the best held-out one",
-        "torchrl_wbrm/training/trainer.py",
-        [('self.ratio_network.load_state_dict(self.ratio_best["state"])', "pass")],
+        "torchrl_wbrm/ratio/fitting.py",
+        [('self.network.load_state_dict(self.best["state"])', "pass")],
         ["tests/test_training.py::test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state"],
     ),
     Mutation(
@@ -104,15 +105,14 @@ MUTATIONS = [
     # ---------------------------------------------------------------- added here
     Mutation(
         "store_ones", "the trainer stores w ≡ 1 over D instead of the stage-1 ŵ",
-        "torchrl_wbrm/training/trainer.py",
-        [('d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))',
-          'd.set("density_ratio", torch.ones(d.shape[0], 1, dtype=d["observation"].dtype))')],
+        "torchrl_wbrm/ratio/storing.py",
+        [("        target.set(key, w)\n", "        target.set(key, torch.ones_like(w))\n")],
         ["tests/test_training.py"],
     ),
     Mutation(
         "skip_ratio_step", "stage 1 never steps its optimiser",
-        "torchrl_wbrm/training/trainer.py",
-        [("        self.ratio_optim.step()\n", "        pass\n")],
+        "torchrl_wbrm/ratio/fitting.py",
+        [("        self.optimizer.step()\n", "        pass\n")],
         ["tests/test_training.py::test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state"],
     ),
     Mutation(
@@ -186,6 +186,7 @@ def main() -> int:
     parser.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of the subsets")
     parser.add_argument("--timeout", type=int, default=900, help="seconds per pytest run")
     parser.add_argument("--list", action="store_true")
+    parser.add_argument("--dry-run", action="store_true", help="apply each mutation to a copy, report lines, run nothing")
     args = parser.parse_args()
     chosen = [m for m in MUTATIONS if not args.only or m.name in args.only]
     if args.list:
@@ -200,6 +201,14 @@ def main() -> int:
         scratch = Path(scratch)
         clean = copy_tree(scratch / "clean")
         check_import(clean)
+        if args.dry_run:
+            for m in chosen:
+                tree = scratch / m.name
+                shutil.copytree(clean, tree, symlinks=True)
+                apply(m, tree)
+                print(f"{m.name:20s} {m.changed} line(s) changed in {m.path}")
+                shutil.rmtree(tree)
+            return 0
         if not args.no_baseline:
             subsets = list(dict.fromkeys(t for m in chosen for t in m.tests))
             rc, out, seconds = run_tests(clean, subsets, full=args.full, timeout=args.timeout)

@@ -86,6 +86,7 @@ def test_each_algo_writes_results_and_figures_through_the_recipe(recipe_runs, al
     history = json.loads((run_dir / "history.json").read_text())
     assert [r["step"] for r in history if r["stage"] == "q"] == [10, 20]
     assert any((run_dir / "logs").rglob("*.csv"))  # the recipe's default csv logger
+    assert (run_dir / "checkpoint.pt").is_file()
     assert proc.stdout.count("paired regret") == len(ALGOS)  # the recipe's summary, once per algo
 
 
@@ -156,6 +157,7 @@ def _learned(algo: str) -> dict:
     q_behaviour = policy_q(env, data.behaviour_gain_scale * K, data.behaviour_noise_std)(samples["observation"],
                                                                                          samples["action"])
     return {
+        "trainer": trainer,
         "final": results["final"],
         "weights": results["weights"],
         "ratio": results["ratio"],
@@ -228,12 +230,21 @@ def test_each_q_method_estimates_q_star_better_than_the_baselines(single_thread,
 def test_wbrm_learns_with_the_recipes_learned_and_shaped_weights(single_thread):
     """The paper's method as the recipe runs it: stage 1 fitted ŵ (early stopping on held-out loss), the recipe's
     shaping (``ratio.temper``) applied to the stored weights; its regret and Q̂ bars are checked above."""
+    from torchrl_wbrm.training import shape_weights
+
     run = _learned("wbrm")
-    recipe = compose_recipe()
-    assert run["config"]["ratio"]["source"] == "learned" and run["ratio"]["source"] == "learned"
-    assert run["config"]["ratio"]["temper"] == recipe.ratio.temper  # the recipe's shaping, whatever it is
+    recipe = compose_recipe().ratio  # the recipe's stage-1 defaults, whatever they are
+    trainer = run["trainer"]
+    assert trainer.cfg.ratio.source == "learned" and run["ratio"]["source"] == "learned"
+    assert (trainer.cfg.ratio.temper, trainer.cfg.ratio.clip, trainer.cfg.ratio.mix) == (recipe.temper, recipe.clip, recipe.mix)
     assert 0 < run["ratio"]["best_step"] <= run["ratio"]["steps_run"]
-    assert run["weights"]["ess_fraction"] < 1 and run["weights"]["mean_behaviour"] == pytest.approx(1.0, rel=1e-3)
+    # the weights over D are the fitted network's ŵ, shaped as the recipe says (by value)
+    d = trainer.q_buffer[:]
+    with torch.no_grad():
+        w = trainer.ratio_network(d.select("observation", "action").clone())["density_ratio"]
+    expected = shape_weights(w, temper=recipe.temper, clip=recipe.clip, mix=recipe.mix, self_normalise=recipe.self_normalise)
+    torch.testing.assert_close(d["density_ratio"], expected.to(d["density_ratio"].dtype), rtol=1e-4, atol=1e-6)
+    assert d["density_ratio"].std() > 0.05  # not all ones: the weighting is on
 
 
 # ---------------------------------------------------------------------- config and grid
