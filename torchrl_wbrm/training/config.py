@@ -299,7 +299,12 @@ class WBRMConfig:
         threads: torch threads (``None``: torch's default).
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
         data_cache: a folder to keep collected datasets in, keyed by env config and seed (``None``: collect anew).
-        resume: a run directory to resume from (``None``: a new run).
+        resume: a run directory to resume from (``None``: a new run). Only the keys of
+            :data:`~torchrl_wbrm.training.guards.CONTINUABLE_KEYS` (a larger ``q.steps``, ``q.eval_every``,
+            ``checkpoint_every``, ``plots``, ``threads``, ``data_cache``) and the ``eval`` and ``logger`` settings may
+            differ from the checkpoint's; any other change is refused, naming the key with its old and new value.
+        overwrite: let a new run replace a run directory that already holds a checkpoint or results (refused
+            otherwise).
         plots: write PNG plots.
     """
 
@@ -316,6 +321,7 @@ class WBRMConfig:
     checkpoint_every: int = 1000
     data_cache: Optional[str] = None
     resume: Optional[str] = None
+    overwrite: bool = False
     plots: bool = True
 
 
@@ -412,6 +418,9 @@ def validate_config(cfg) -> None:
         raise ValueError(f"baselines.dqn.num_bins must be >= 2, got {cfg.baselines.dqn.num_bins}.")
     if cfg.ratio.source == "exact" and cfg.env.kind != "lqr":
         raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
+    from torchrl_wbrm.training.guards import validate_run_settings
+
+    validate_run_settings(cfg)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
 
 
 def register_configs() -> None:

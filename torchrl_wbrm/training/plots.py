@@ -1,6 +1,7 @@
 """PNG plots like the paper's figures: the training curve, and evaluation returns against the exact optimum."""
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -9,14 +10,33 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-__all__ = ["plot_ci_rows", "plot_run"]
+__all__ = ["LOSS_TITLES", "plot_ci_rows", "plot_run"]
+
+#: The title of the training-loss panel per algo (its losses are every ``loss*`` figure the algo's step reports).
+LOSS_TITLES = {
+    "wbrm": "stage 2: weighted Bellman residual",
+    "brm": "unweighted Bellman residual (w ≡ 1)",
+    "fqi": "fitted Q iteration: regression loss",
+    "mabo": "MABO: Bellman loss against the adversary",
+    "bc": "behaviour cloning loss",
+    "td3bc": "TD3+BC: critic and actor losses",
+    "ddpg": "DDPG: critic and actor losses",
+    "cql": "CQL: losses",
+    "iql": "IQL: losses",
+    "dqn": "DQN: TD loss",
+}
 
 
-def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = "") -> list[Path]:
+def _finite(values: list) -> list[float]:
+    return [float(v) for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
+
+
+def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = "", algo: str = "wbrm") -> list[Path]:
     """Write ``training_curve.png`` and ``evaluation.png`` from a trainer's history; returns their paths.
 
-    The reference line is the exact optimum (LQR, ``optimal_return_exact``), never the paper's 87.84, which is the
-    reward cap; for MountainCar there is no exact optimum and no line is drawn.
+    The loss panel draws every ``loss*`` figure the algo reports (a log axis when all are positive), titled by
+    :data:`LOSS_TITLES`. The reference line is the exact optimum (LQR, ``optimal_return_exact``), never the paper's
+    87.84, which is the reward cap; for MountainCar there is no exact optimum and no line is drawn.
     """
     run_dir = Path(run_dir)
     paths = []
@@ -26,17 +46,29 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
 
     fig, axes = plt.subplots(1, 3 if ratio else 2, figsize=(13 if ratio else 9, 3.6))
     if train:
-        steps = [r["step"] for r in train]
-        axes[0].plot(steps, [r["loss_value"] for r in train])
-        axes[0].set_yscale("log")
-        axes[0].set_title("stage 2: weighted Bellman residual")
+        losses = [k for k in dict.fromkeys(k for r in train for k in r) if k.startswith("loss")]
+        positive = True
+        for key in losses:
+            rows = [r for r in train if key in r and r[key] is not None]
+            axes[0].plot([r["step"] for r in rows], [r[key] for r in rows], label=key)
+            values = _finite([r[key] for r in rows])
+            positive = positive and bool(values) and min(values) > 0
+        if losses and positive:
+            axes[0].set_yscale("log")
+        if len(losses) > 1:
+            axes[0].legend(fontsize=8)
+        axes[0].set_title(LOSS_TITLES.get(algo, f"{algo}: training losses"))
         axes[0].set_xlabel("step")
-        axes[1].plot(steps, [r.get("q_mean", float("nan")) for r in train], label="mean Q̂ on batch")
+        q_key = next((k for k in ("q_mean", "actor_q_mean", "target_value_mean") if any(k in r for r in train)), None)
+        if q_key is not None:
+            rows = [r for r in train if q_key in r]
+            axes[1].plot([r["step"] for r in rows], [r[q_key] for r in rows], label=f"{q_key} on batch")
         if evals and "q_star_mean_behaviour" in evals[-1]:
             axes[1].axhline(evals[-1]["q_star_mean_behaviour"], color="k", ls="--", label="mean Q* on behaviour data")
-        axes[1].set_title("mean Q")
+        axes[1].set_title("mean Q" if q_key is not None else f"mean Q ({algo} reports none per batch)")
         axes[1].set_xlabel("step")
-        axes[1].legend(fontsize=8)
+        if q_key is not None or (evals and "q_star_mean_behaviour" in evals[-1]):
+            axes[1].legend(fontsize=8)
     if ratio:
         axes[2].plot([r["step"] for r in ratio], [r["held_out_loss"] for r in ratio])
         axes[2].set_title("stage 1: held-out ratio loss")
@@ -53,7 +85,8 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
         ret = [r["return"] for r in evals]
         ci = [r.get("return_ci", 0.0) for r in evals]
         ax = axes[0, 0]
-        ax.errorbar(steps, ret, yerr=ci, marker="o", capsize=3, label="greedy policy (95% CI)")
+        ax.errorbar(steps, ret, yerr=ci, marker="o", capsize=3,
+                    label=f"{algo} policy, deterministic (95% CI)")
         if "optimal_return_exact" in evals[-1]:
             ax.axhline(evals[-1]["optimal_return_exact"], color="k", ls="--", label="exact optimum")
         ax.set_xlabel("step")
@@ -62,7 +95,8 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
         if "regret" in evals[-1]:
             ax = axes[0, 1]
             ax.errorbar(steps, [r["regret"] for r in evals], yerr=[r["regret_ci"] for r in evals], marker="o", capsize=3)
-            if min(r["regret"] for r in evals) > 0:
+            regrets = _finite([r["regret"] for r in evals])
+            if regrets and min(regrets) > 0:
                 ax.set_yscale("log")
             ax.set_xlabel("step")
             ax.set_ylabel("paired regret vs exact optimum")

@@ -1,53 +1,89 @@
 """Human-readable summaries of a run's results."""
 from __future__ import annotations
 
-__all__ = ["ci_cell", "load_results", "results_table", "summarise"]
+__all__ = ["ci_cell", "load_results", "results_table", "split_by_status", "summarise"]
+
+
+def _n(value, spec: str) -> str:
+    """``format(value, spec)``, or ``"n/a"`` for a missing or non-finite figure (``null`` in results.json)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return "n/a"
+    return format(value, spec)
 
 
 def summarise(results: dict) -> str:
-    """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar)."""
+    """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar), and any
+    flag (a diverged run, a Q̂ blow-up)."""
     f = results.get("final", {})
     w = results.get("weights", {})
     algo = results.get("algo", "wbrm")
-    detail = f"ratio source: {results['ratio']['source']}" if algo in ("wbrm", "brm") else "baseline"
+    detail = f"ratio source: {results.get('ratio', {}).get('source')}" if algo in ("wbrm", "brm") else "baseline"
     lines = [f"env {results['env']}  seed {results['seed']}  algo {algo} ({detail})"]
+    if results.get("status", "finished") != "finished":
+        lines.append(f"STATUS {results['status'].upper()}: " + results.get("diverged", {}).get("message", ""))
     if "regret" in f:
         lines += [
-            f"return        {f['return']:.4f} ± {f['return_ci']:.4f}   (exact optimum {f['optimal_return_exact']:.4f})",
-            f"paired regret {f['regret']:.4f} ± {f['regret_ci']:.4f}",
+            f"return        {_n(f['return'], '.4f')} ± {_n(f.get('return_ci'), '.4f')}   "
+            f"(exact optimum {_n(f.get('optimal_return_exact'), '.4f')})",
+            f"paired regret {_n(f['regret'], '.4f')} ± {_n(f.get('regret_ci'), '.4f')}",
         ]
         if "q_error_expert" in f:  # methods without a Q network (bc) have none
+            qe, qb = f["q_error_expert"], f.get("q_error_behaviour")
             lines.append(
-                f"Q̂ error / spread of Q*: expert {100 * f['q_error_expert']:.1f}%  behaviour {100 * f['q_error_behaviour']:.1f}%"
-                f"   bias on expert {f['q_bias_expert']:+.3f}"
+                f"Q̂ error / spread of Q*: expert {_n(None if qe is None else 100 * qe, '.1f')}%  "
+                f"behaviour {_n(None if qb is None else 100 * qb, '.1f')}%   bias on expert {_n(f.get('q_bias_expert'), '+.3f')}"
             )
     elif "return" in f:
-        lines.append(f"return {f['return']:.2f} ± {f['return_ci']:.2f} over the evaluation episodes")
+        lines.append(f"return {_n(f['return'], '.2f')} ± {_n(f.get('return_ci'), '.2f')} over the evaluation episodes")
     if w:
+        ess_fraction = w.get("ess_fraction")
         lines.append(
-            f"weights over D: mean {w['mean_behaviour']:.3f}  ESS {w['ess']:.0f} ({100 * w['ess_fraction']:.2f}%)  max {w['max']:.3g}"
+            f"weights over D: mean {_n(w.get('mean_behaviour'), '.3f')}  ESS {_n(w.get('ess'), '.0f')} "
+            f"({_n(None if ess_fraction is None else 100 * ess_fraction, '.2f')}%)  max {_n(w.get('max'), '.3g')}"
         )
     r = results.get("ratio", {})
     if "ratio_relative_l2" in r:
         lines.append(
-            f"ŵ vs true ratio: relative L2 error {r['ratio_relative_l2']:.3f}  behaviour mean {r['ratio_mean_behaviour']:.3f}"
+            f"ŵ vs true ratio: relative L2 error {_n(r['ratio_relative_l2'], '.3f')}  "
+            f"behaviour mean {_n(r.get('ratio_mean_behaviour'), '.3f')}"
+        )
+    scale = results.get("q_scale") or {}
+    if scale.get("blow_up"):
+        lines.append(
+            f"FLAG q_blow_up: |{scale['figure']}| = {_n(scale['max_abs_q_mean'], '.4g')} is more than "
+            f"{_n(scale['factor'], 'g')} x r_max/(1 - gamma) = {_n(scale['bound'], '.4g')}: Q̂ has blown up."
         )
     if "wall_seconds" in results:
-        lines.append(f"wall time {results['wall_seconds']:.1f} s (data {results.get('data_seconds', 0):.1f} s)")
+        lines.append(f"wall time {_n(results['wall_seconds'], '.1f')} s (data {_n(results.get('data_seconds', 0), '.1f')} s)")
     return "\n".join(lines)
 
 
-def load_results(root) -> list[dict]:
-    """Every ``results.json`` under ``root`` (a Hydra multirun directory, or any tree of run directories)."""
+def load_results(root, *, finished_only: bool = False) -> list[dict]:
+    """Every ``results.json`` under ``root`` (a Hydra multirun directory, or any tree of run directories).
+
+    ``finished_only``: keep runs whose ``"status"`` is ``"finished"`` (results written before statuses existed
+    count as finished); see :func:`split_by_status` to count the others.
+    """
     import json
     from pathlib import Path
 
     records = []
     for path in sorted(Path(root).rglob("results.json")):
-        records.append(json.loads(path.read_text()))
+        try:
+            record = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path} is not valid JSON ({err}).") from err
+        record.setdefault("_path", str(path))
+        records.append(record)
     if not records:
         raise FileNotFoundError(f"No results.json under {root}: did the runs finish?")
-    return records
+    return split_by_status(records)[0] if finished_only else records
+
+
+def split_by_status(records: list[dict]) -> tuple[list[dict], list[dict]]:
+    """``(finished, other)``: runs with ``"status": "finished"`` (or none recorded) and the rest (diverged, ...)."""
+    finished = [r for r in records if r.get("status", "finished") == "finished"]
+    return finished, [r for r in records if r.get("status", "finished") != "finished"]
 
 
 def _lookup(record: dict, dotted: str):
@@ -77,17 +113,29 @@ def results_table(records: list[dict], group_by: list[str], metrics: dict[str, s
     """A Markdown table: one row per distinct value of ``group_by`` (config paths), ``mean ± 95% CI`` over seeds.
 
     ``metrics`` maps a column title to a dotted path in the results (e.g. ``{"regret": "final.regret"}``). The CI is
-    Student-t over the runs of a row (the seeds), so it states how much the figure moves from seed to seed.
+    Student-t over the runs of a row (the seeds), so it states how much the figure moves from seed to seed. Only
+    finished runs enter the figures: runs with another ``"status"`` (diverged) are counted in a line below the
+    table, and when a run is flagged (a Q̂ blow-up) a ``flagged`` column counts them per row.
     """
+    records, excluded = split_by_status(records)
     rows: dict[tuple, list[dict]] = {}
     for rec in records:
         key = tuple(_lookup(rec, "config." + g) if not g.startswith("=") else _lookup(rec, g[1:]) for g in group_by)
         rows.setdefault(key, []).append(rec)
-    header = [g.lstrip("=") for g in group_by] + ["seeds"] + list(metrics)
+    flagged = any(r.get("flags") for r in records)
+    header = [g.lstrip("=") for g in group_by] + ["seeds"] + (["flagged"] if flagged else []) + list(metrics)
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
         recs = rows[key]
         cells = [str(k) for k in key] + [str(len(recs))]
+        if flagged:
+            cells.append(str(sum(1 for r in recs if r.get("flags"))))
         cells += [ci_cell(recs, path, digits) for path in metrics.values()]
         lines.append("| " + " | ".join(cells) + " |")
+    if excluded:
+        counts: dict[str, int] = {}
+        for r in excluded:
+            counts[r.get("status")] = counts.get(r.get("status"), 0) + 1
+        detail = ", ".join(f"{n} {status}" for status, n in sorted(counts.items(), key=str))
+        lines.append(f"\n{len(excluded)} run(s) excluded from the table ({detail}).")
     return "\n".join(lines)

@@ -15,13 +15,15 @@ def run_overrides(
 ) -> dict:
     """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results.
 
-    A run whose ``results.json`` exists is not run again (its results are read back), so an interrupted study
-    resumes where it stopped. ``extra_results`` are merged into the saved results (e.g. the study cell's labels).
+    A run whose ``results.json`` exists is not run again (its results are read back, a diverged run's too), and
+    one with only a checkpoint resumes from it, so an interrupted study resumes where it stopped. ``extra_results``
+    are merged into the saved results (e.g. the study cell's labels).
     """
     import torch
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs
+    from torchrl_wbrm.training.guards import write_json
     from torchrl_wbrm.training.trainer import WBRMTrainer
 
     run_dir = Path(run_dir)
@@ -32,9 +34,11 @@ def run_overrides(
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose(config_name, overrides=[*overrides, "threads=1"])
-    results = WBRMTrainer(cfg, run_dir, progress=False).run()
+    # an interrupted cell (a checkpoint, no results) continues; its config must match the checkpoint's
+    resume = (run_dir / "checkpoint.pt").is_file()
+    results = WBRMTrainer(cfg, run_dir, progress=False, resume=resume).run()
     results.update(extra_results or {})
-    done.write_text(json.dumps(results, indent=2, default=float))
+    write_json(done, results)
     return results
 
 

@@ -52,6 +52,18 @@ from torchrl_wbrm.policies import (
 )
 from torchrl_wbrm.training.algos import Algo, AlgoContext, build_algo
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.guards import (
+    RunInterrupted,
+    StopSignals,
+    TrainingDiverged,
+    check_resume_config,
+    check_run_dir,
+    first_non_finite,
+    json_safe,
+    non_finite_parameter,
+    read_checkpoint,
+    write_json,
+)
 from torchrl_wbrm.training.weights import shape_weights
 
 __all__ = ["WBRMTrainer", "set_seed", "get_rng_state", "set_rng_state"]
@@ -108,6 +120,20 @@ class WBRMTrainer:
         validate_config(self.cfg)
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        # before any data are collected: the checkpoint is read and the config compared (resume), or the directory
+        # is checked for an earlier run (a new run never overwrites one without overwrite=true)
+        self._resume_sd, self.resume_changes = None, {}
+        if resume:
+            path = self.run_dir / CHECKPOINT
+            self._resume_sd = read_checkpoint(path)
+            self.resume_changes = check_resume_config(
+                path, dict(self._resume_sd["config"]), OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+                self._resume_sd["state"],
+            )
+        else:
+            check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)
+        self._stop = None  # StopSignals while run() runs
+        self._checkpoint_state: dict | None = None  # the state of the last checkpoint written (all finite)
         self.logger = logger
         self.progress = progress
         self.device = torch.device(self.cfg.device)
@@ -260,6 +286,9 @@ class WBRMTrainer:
         try:
             for step in range(start + 1, stop + 1):
                 figures = step_fn(step)
+                bad = first_non_finite(figures)
+                if bad is not None:  # nothing of this step is checkpointed
+                    raise TrainingDiverged(name, step, bad[0], bad[1])
                 self.state["step"] = step
                 if step % log_every == 0 or step == stop:
                     running = {k: float(v) for k, v in figures.items()}
@@ -272,6 +301,9 @@ class WBRMTrainer:
                 if ckpt_every and step % ckpt_every == 0 and step != stop:
                     self.save_checkpoint()
                 bar.update(1)
+                if self._stop is not None and self._stop.received is not None:
+                    self.save_checkpoint()
+                    raise RunInterrupted(self._stop.received, name, step, self.run_dir)
                 if finished_early:
                     break
         finally:
@@ -308,6 +340,8 @@ class WBRMTrainer:
         record = {"stage": "ratio", "step": step, "held_out_loss": held_out}
         record.update(self._ratio_truth_figures())
         self.history.append(record)
+        if not math.isfinite(held_out):
+            raise TrainingDiverged("ratio evaluation", step, "held_out_loss", held_out)
         self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
         return best["bad"] >= self.cfg.ratio.patience
 
@@ -341,6 +375,8 @@ class WBRMTrainer:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
         w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
+        if not bool(torch.isfinite(w).all()):
+            raise TrainingDiverged("weights over D", 0, "density_ratio", float(w[~torch.isfinite(w)][0]))
         d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
@@ -363,6 +399,9 @@ class WBRMTrainer:
         final = step == self.cfg.q.steps
         record = {"stage": "q", "step": step, **self.evaluate(final=final)}
         self.history.append(record)
+        bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
+        if bad is not None:
+            raise TrainingDiverged("q evaluation", step, bad[0], bad[1])
         self._log({f"eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
         return None
 
@@ -412,8 +451,21 @@ class WBRMTrainer:
     def run(self, *, until: int | None = None) -> dict | None:
         """Run (or continue) both stages. ``until``: stop stage 2 after this step (for interruption tests).
 
-        Returns the results dict (also written to ``results.json``), or ``None`` when stopped by ``until``.
+        Returns the results dict (also written to ``results.json``; ``"status"`` is ``"finished"``, or
+        ``"diverged"`` when a non-finite loss, Q, ratio or parameter stopped the run: the last finite checkpoint is
+        kept and ``"diverged"`` names the stage, step and figure), or ``None`` when stopped by ``until``. SIGINT and
+        SIGTERM stop it at the next step boundary: a checkpoint is written and :class:`RunInterrupted` raised.
         """
+        try:
+            with StopSignals() as self._stop:
+                return self._run(until=until)
+        except TrainingDiverged as err:
+            err.checkpoint_step = None if self._checkpoint_state is None else self._checkpoint_state["step"]
+            return self._diverged_results(err)
+        finally:
+            self._stop = None
+
+    def _run(self, *, until: int | None) -> dict | None:
         if self.state["stage"] == "ratio":
             if self.ratio_network is not None:
                 self._run_stage(
@@ -437,16 +489,52 @@ class WBRMTrainer:
                 return None
             self.state = {"stage": "done", "step": self.cfg.q.steps}
             self.save_checkpoint()
+        elif any(k.startswith("eval.") for k in self.resume_changes):  # a finished run, evaluated anew
+            self._q_eval(self.cfg.q.steps)
         return self.results()
+
+    #: |Q̂| beyond this many times r_max / (1 − γ) is flagged as a blow-up (Q* lies within r_max / (1 − γ)).
+    BLOW_UP_FACTOR = 10.0
+
+    def _q_scale(self, final: dict) -> dict:
+        """The largest |mean Q̂| the run reports (final evaluation, last training figures) against r_max / (1 − γ)."""
+        r_max = float(self.datasets.transitions[:]["next", "reward"].abs().max())
+        bound = r_max / (1 - self.gamma)
+        train = [r for r in self.history if r["stage"] == "q_train"]
+        values = {k: v for k, v in final.items() if k.startswith("q_mean")}
+        if train:
+            values.update({f"train_{k}": v for k, v in train[-1].items() if k in ("q_mean", "target_value_mean", "actor_q_mean")})
+        values = {k: abs(float(v)) for k, v in values.items() if isinstance(v, (int, float)) and math.isfinite(v)}
+        largest = max(values.values(), default=None)
+        return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
+                "bound": bound, "factor": self.BLOW_UP_FACTOR,
+                "blow_up": largest is not None and largest > self.BLOW_UP_FACTOR * bound}
+
+    def _diverged_results(self, err: TrainingDiverged) -> dict:
+        """``results.json`` of a run stopped by divergence: valid JSON, ``"status": "diverged"`` and where."""
+        final = [r for r in self.history if r["stage"] == "q"]
+        results = {
+            "status": "diverged",
+            "env": self.cfg.env.name,
+            "algo": self.cfg.algo,
+            "seed": self.cfg.seed,
+            "diverged": {"stage": err.stage, "step": err.step, "figure": err.figure, "value": repr(err.value),
+                         "message": str(err), "checkpoint_step": err.checkpoint_step,
+                         "checkpoint_stage": None if self._checkpoint_state is None else self._checkpoint_state["stage"]},
+            "final": final[-1] if final else {},
+            "flags": ["diverged"],
+            "data_seconds": self.data_seconds,
+            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+        }
+        write_json(self.run_dir / "results.json", results)
+        write_json(self.run_dir / "history.json", self.history)
+        return json_safe(results)
 
     def results(self) -> dict:
         final = [r for r in self.history if r["stage"] == "q"]
-        if self.cfg.plots:
-            from torchrl_wbrm.training.plots import plot_run
-
-            plot_run(self.history, self.run_dir, title=f"{self.cfg.env.name}, seed {self.cfg.seed}")
         ratio_records = [r for r in self.history if r["stage"] == "ratio"]
         results = {
+            "status": "finished",
             "env": self.cfg.env.name,
             "algo": self.cfg.algo,
             "seed": self.cfg.seed,
@@ -467,8 +555,17 @@ class WBRMTrainer:
             best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
-        (self.run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
-        (self.run_dir / "history.json").write_text(json.dumps(self.history, indent=2, default=float))
+        results["q_scale"] = self._q_scale(results["final"])
+        results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
+        results = json_safe(results)
+        # the figures are on disk before any plot is drawn: a failing plot cannot lose them
+        write_json(self.run_dir / "results.json", results)
+        write_json(self.run_dir / "history.json", self.history)
+        if self.cfg.plots:
+            from torchrl_wbrm.training.plots import plot_run
+
+            plot_run(self.history, self.run_dir, title=f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}",
+                     algo=self.cfg.algo)
         return results
 
     # ------------------------------------------------------------------ checkpoints
@@ -492,30 +589,29 @@ class WBRMTrainer:
         return sd
 
     def save_checkpoint(self) -> Path:
+        """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
+        the checkpoint on disk is always the last finite one."""
         path = self.run_dir / CHECKPOINT
+        bad = non_finite_parameter(self.q_loss, self.ratio_loss if self.ratio_network is not None else None)
+        if bad is not None:
+            raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
         tmp = path.with_suffix(".tmp")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, path)
+        self._checkpoint_state = dict(self.state)
         return path
 
     def _load_checkpoint(self) -> None:
+        """Restore the checkpoint read (and whose config was checked) in ``__init__``."""
         path = self.run_dir / CHECKPOINT
-        if not path.is_file():
-            raise FileNotFoundError(f"Cannot resume: no {CHECKPOINT} in {self.run_dir}.")
-        sd = torch.load(path, weights_only=False)
+        sd = self._resume_sd
         if abs(sd["data_fingerprint"] - self.data_fingerprint) > 1e-6:
             raise ValueError(
                 f"Cannot resume from {path}: its data differ from this config's (env or seed changed?)."
             )
-        saved = dict(sd["config"])
-        now = OmegaConf.to_container(OmegaConf.structured(self.cfg))
-        for section in ("env", "ratio"):
-            if saved.get(section) != now.get(section):
-                raise ValueError(f"Cannot resume from {path}: its '{section}' settings differ from this config's.")
         self.state = sd["state"]
         self.history = sd["history"]
-        if saved.get("algo", "wbrm") != self.cfg.algo:
-            raise ValueError(f"Cannot resume from {path}: it ran algo={saved.get('algo')!r}, not {self.cfg.algo!r}.")
+        self._checkpoint_state = dict(self.state)
         self.q_loss.load_state_dict(sd["q_loss"])
         # checkpoints written before the algos refactor hold "value_optim" and "actor_optim"
         optimisers = sd.get("optimisers") or {"value": sd["value_optim"], "actor": sd["actor_optim"]}
@@ -531,3 +627,4 @@ class WBRMTrainer:
         if self.state["stage"] != "ratio":
             self._build_q_buffer()
         set_rng_state(sd["rng"])
+        self._resume_sd = None  # restored: free the copy

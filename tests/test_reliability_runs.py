@@ -1,0 +1,312 @@
+"""Nothing lost, nothing silent (issue 11): run directories, resume, signals, divergence, plots, summaries, config.
+
+Each failure case asserts the error type and that the message names the key, file or setting; the run-directory
+and resume tests check that nothing on disk changed.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from torchrl_wbrm.training import WBRMTrainer
+from torchrl_wbrm.training.algos import ALGOS
+from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.guards import CONTINUABLE_KEYS, RunInterrupted
+from torchrl_wbrm.training.plots import LOSS_TITLES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny(**overrides) -> WBRMConfig:
+    base = {
+        "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
+        "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
+        "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
+        "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 400},
+        "logger": {"backend": "", "log_every": 5},
+        "checkpoint_every": 10,
+        "plots": False,
+    }
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), base, overrides))
+
+
+def snapshot(root: Path) -> dict[str, tuple[int, str, int]]:
+    return {
+        str(p.relative_to(root)): (p.stat().st_size, hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+        for p in sorted(Path(root).rglob("*")) if p.is_file()
+    }
+
+
+def strict_json(path: Path):
+    def refuse(name):
+        raise ValueError(f"{path} holds {name}, which is not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A finished tiny run (40 steps): its directory."""
+    run_dir = tmp_path_factory.mktemp("finished")
+    WBRMTrainer(tiny(), run_dir, progress=False).run()
+    return run_dir
+
+
+# ---------------------------------------------------------------------- run directories
+def test_new_run_refuses_a_run_directory(finished, tmp_path):
+    before = snapshot(finished)
+    with pytest.raises(FileExistsError, match=rf"{finished} already holds a run \(checkpoint.pt, results.json.*overwrite=true"):
+        WBRMTrainer(tiny(), finished, progress=False)
+    assert snapshot(finished) == before
+    # overwrite=true replaces it: the old files are removed before the new run writes its own
+    other = tmp_path / "run"
+    other.mkdir()
+    (other / "results.json").write_text("{}")
+    trainer = WBRMTrainer(tiny(overwrite=True, q={"steps": 20}), other, progress=False)
+    assert not (other / "results.json").exists()
+    assert trainer.run()["config"]["q"]["steps"] == 20
+
+
+# ---------------------------------------------------------------------- resume
+@pytest.mark.parametrize(
+    "overrides, named",
+    [
+        ({"q": {"lr": 1e-5}}, ["q.lr: 0.001 -> 1e-05"]),
+        ({"q": {"residual": "absolute_mean", "gamma": 0.5}}, ["q.gamma: None -> 0.5", "q.residual: 'squared' -> 'absolute_mean'"]),
+        ({"ratio": {"alpha": 1.0}, "algo": "brm"}, ["algo: 'wbrm' -> 'brm'", "ratio.alpha: 0.5 -> 1.0"]),
+    ],
+)
+def test_resume_refuses_changed_settings(finished, overrides, named):
+    before = snapshot(finished)
+    with pytest.raises(ValueError, match="cannot change in a resumed run") as err:
+        WBRMTrainer(tiny(**overrides), finished, progress=False, resume=True)
+    for text in named:
+        assert text in str(err.value)
+    assert snapshot(finished) == before
+
+
+def test_resume_refuses_a_smaller_budget(finished):
+    before = snapshot(finished)
+    with pytest.raises(ValueError, match="q.steps=20 is smaller than the 40 steps already trained"):
+        WBRMTrainer(tiny(q={"steps": 20}), finished, progress=False, resume=True)
+    assert snapshot(finished) == before
+
+
+def test_resume_accepts_continuable_keys_and_reevaluates(finished, tmp_path):
+    import shutil
+
+    assert "q.steps" in CONTINUABLE_KEYS
+    run = tmp_path / "copy"
+    shutil.copytree(finished, run)
+    old = strict_json(run / "results.json")["final"]
+    # other evaluation settings on a finished run: evaluated anew, not relabelled
+    results = WBRMTrainer(tiny(eval={"episodes": 80, "train_episodes": 20, "q_samples": 400}), run, progress=False,
+                          resume=True).run()
+    assert results["config"]["eval"]["episodes"] == 80
+    assert results["final"]["return"] != old["return"] and results["final"]["step"] == 40
+    # a larger budget continues training
+    results = WBRMTrainer(tiny(q={"steps": 60}), run, progress=False, resume=True).run()
+    assert results["final"]["step"] == 60
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "not_a_checkpoint"])
+def test_corrupted_checkpoint_names_the_file(finished, tmp_path, damage):
+    import shutil
+
+    run = tmp_path / "copy"
+    shutil.copytree(finished, run)
+    ckpt = run / "checkpoint.pt"
+    if damage == "truncate":
+        os.truncate(ckpt, ckpt.stat().st_size // 2)
+    elif damage == "garbage":
+        ckpt.write_bytes(b"\x00garbage" * 100)
+    else:
+        torch.save({"step": 3}, ckpt)
+    before = snapshot(run)
+    with pytest.raises(RuntimeError, match=rf"Cannot resume: {ckpt} (is corrupted|is not a complete checkpoint)"):
+        WBRMTrainer(tiny(), run, progress=False, resume=True)
+    assert snapshot(run) == before
+
+
+def test_sigterm_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
+    trainer = WBRMTrainer(tiny(), tmp_path, progress=False)
+    step = trainer._q_step
+
+    def signalled(i):
+        if i == 15:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return step(i)
+
+    trainer._q_step = signalled
+    with pytest.raises(RunInterrupted, match=rf"SIGTERM received: stopped in stage 'q' at step 15.*resume={tmp_path}") as err:
+        trainer.run()
+    assert err.value.exit_code == 128 + signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is removed again
+    assert not (tmp_path / "results.json").exists()
+    resumed = WBRMTrainer(tiny(), tmp_path, progress=False, resume=True)
+    assert resumed.state == {"stage": "q", "step": 15}
+    assert resumed.run()["status"] == "finished"
+
+
+def test_recipe_sigint_exits_non_zero_with_a_resume_line(tmp_path):
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "ratio.steps=10", "q.steps=1000000",
+           "q.eval_every=1000000", "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=400", "logger=none",
+           "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
+           "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "checkpoint_every=0", f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.time() + 120
+    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("SIGINT received: stopped in stage 'q' at step ") and f"resume={run_dir}" in last
+    assert "Traceback" not in err
+    step = torch.load(run_dir / "checkpoint.pt", weights_only=False)["state"]["step"]
+    assert step > 0 and f"at step {step}," in last
+
+
+# ---------------------------------------------------------------------- divergence
+def test_non_finite_loss_stops_the_run_and_keeps_the_last_finite_checkpoint(tmp_path):
+    results = WBRMTrainer(tiny(q={"lr": 1e10}), tmp_path, progress=False).run()
+    assert results["status"] == "diverged"
+    d = results["diverged"]
+    assert d["stage"] == "q" and d["step"] >= 1 and d["figure"].startswith("loss") and "stage 'q' at step" in d["message"]
+    saved = strict_json(tmp_path / "results.json")  # valid JSON: no bare NaN
+    assert saved["status"] == "diverged" and saved["diverged"]["figure"] == d["figure"]
+    strict_json(tmp_path / "history.json")
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert ckpt["state"]["step"] == d["checkpoint_step"] < d["step"]
+    assert all(torch.isfinite(v).all() for v in ckpt["q_loss"].values() if v.is_floating_point())
+
+
+def test_recipe_exits_non_zero_on_divergence(tmp_path, monkeypatch, capsys):
+    import runpy
+
+    monkeypatch.setattr(sys, "argv", [
+        "wbrm_offline.py", "ratio.steps=10", "q.steps=20", "q.lr=1e10", "eval.episodes=50", "eval.train_episodes=20",
+        "eval.q_samples=400", "logger=none", "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20",
+        "env.lqr_data.parallel_envs=20", f"hydra.run.dir={tmp_path}", "hydra/job_logging=none", "hydra/hydra_logging=none",
+    ])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(ROOT / "recipes" / "wbrm_offline.py"), run_name="__main__")
+    captured = capsys.readouterr()
+    assert exit_.value.code == 2
+    assert "Training diverged in stage 'q' at step" in captured.err and "return nan" not in captured.out
+    assert strict_json(tmp_path / "results.json")["status"] == "diverged"
+
+
+def test_finite_blow_up_is_flagged(tmp_path):
+    results = WBRMTrainer(tiny(q={"lr": 100.0}), tmp_path, progress=False).run()
+    scale = results["q_scale"]
+    assert results["status"] == "finished" and results["flags"] == ["q_blow_up"]
+    assert scale["blow_up"] and scale["max_abs_q_mean"] > scale["factor"] * scale["bound"]
+    from torchrl_wbrm.training.reporting import summarise
+
+    assert "FLAG q_blow_up" in summarise(results)
+
+
+def test_summarise_excludes_unfinished_runs(tmp_path, finished, monkeypatch, capsys):
+    import shutil
+
+    for name in ("a", "b"):
+        shutil.copytree(finished, tmp_path / name)
+    diverged = strict_json(tmp_path / "b" / "results.json")
+    diverged.update(status="diverged", diverged={"stage": "q", "step": 3, "figure": "loss_value", "value": "nan"})
+    diverged["final"]["regret"] = None
+    (tmp_path / "b" / "results.json").write_text(json.dumps(diverged))
+    flagged = strict_json(tmp_path / "a" / "results.json")
+    shutil.copytree(finished, tmp_path / "c")
+    flagged.update(flags=["q_blow_up"], q_scale={"figure": "q_mean_expert", "max_abs_q_mean": 1e6, "factor": 10, "bound": 100})
+    (tmp_path / "c" / "results.json").write_text(json.dumps(flagged))
+    import runpy
+
+    monkeypatch.setattr(sys, "argv", ["summarise.py", str(tmp_path)])
+    runpy.run_path(str(ROOT / "recipes" / "summarise.py"), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "3 runs under" in out and "2 finished, 1 not finished (excluded)" in out
+    assert "excluded (diverged):" in out and "b/results.json" in out and "step 3 loss_value" in out
+    assert "flagged q_blow_up:" in out and "c/results.json" in out
+    row = [line for line in out.splitlines() if line.startswith("| lqr_exp1")]
+    assert len(row) == 1 and "| 2 | 1 |" in row[0]  # two seeds' runs, one flagged; the diverged one left out
+    from torchrl_wbrm.training.reporting import load_results, results_table
+
+    table = results_table(load_results(tmp_path), ["env.name"], {"regret": "final.regret"})
+    assert "| lqr_exp1 | 2 | 1 |" in table and "1 run(s) excluded from the table (1 diverged)" in table
+
+
+# ---------------------------------------------------------------------- every algo, plots on
+def test_every_algo_has_a_plot_title():
+    assert set(LOSS_TITLES) == set(ALGOS)
+
+
+@pytest.mark.parametrize("algo", sorted(set(ALGOS) - {"wbrm"}))
+def test_every_baseline_runs_with_plots(tmp_path, algo):
+    cfg = tiny(algo=algo, plots=True, ratio={"steps": 10}, q={"steps": 10, "eval_every": 10},
+               baselines={"mabo": {"critic_num_cells": [16, 16]}})
+    results = WBRMTrainer(cfg, tmp_path, progress=False).run()
+    assert results["status"] == "finished" and strict_json(tmp_path / "results.json")["algo"] == algo
+    assert (tmp_path / "training_curve.png").stat().st_size > 0 and (tmp_path / "evaluation.png").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------- config, before any data
+@pytest.mark.parametrize(
+    "overrides, named",
+    [
+        ({"seed": -1}, "seed must be >= 0, got -1"),
+        ({"eval": {"q_samples": 0}}, "eval.q_samples must be > 0"),
+        ({"env": {"lqr_data": {"parallel_envs": 0}}}, "env.lqr_data.parallel_envs must be >= 1, got 0"),
+        ({"threads": -1}, "threads must be >= 1 or null"),
+        ({"q": {"lr": math.inf}}, "q.lr=inf: every number in the config must be finite"),
+        ({"device": "tpu"}, "device='tpu'"),
+        ({"env": {"lqr": {"reward_clip": 1.0}}}, "env.lqr.reward_clip=1.0"),
+    ],
+)
+def test_config_errors_name_the_key_before_any_data(tmp_path, overrides, named):
+    cfg = tiny(data_cache=str(tmp_path / "cache"), **overrides)
+    with pytest.raises(ValueError) as err:
+        WBRMTrainer(cfg, tmp_path / "run", progress=False)
+    assert named in str(err.value)
+    assert not (tmp_path / "cache").exists()  # refused before any data were collected
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_without_cuda_names_device(tmp_path):
+    with pytest.raises(ValueError, match=r"device='cuda' but CUDA is not available"):
+        validate_config(tiny(device="cuda"))
+    with pytest.raises(ValueError, match=r"device='cuda:0' but CUDA is not available.*use device=cpu"):
+        WBRMTrainer(tiny(device="cuda:0", data_cache=str(tmp_path / "cache")), tmp_path / "run", progress=False)
+    assert not (tmp_path / "cache").exists()
+
+
+def test_three_dimensional_lqr_is_refused_with_the_clip_and_runs_without(tmp_path):
+    three = {"F": [[0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]], "G": [[0.5, 0], [0, 0.5], [0.2, 0.2]],
+             "S": [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]}
+    with pytest.raises(ValueError, match=r"env.lqr: a 3-dimensional state with the reward clipped.*env.lqr.reward_clip=null"):
+        validate_config(tiny(env={"name": "lqr_custom", "lqr": three}))
+    cfg = tiny(env={"name": "lqr_custom", "lqr": {**three, "reward_clip": None}}, q={"steps": 10, "eval_every": 10})
+    results = WBRMTrainer(cfg, tmp_path, progress=False).run()
+    assert results["status"] == "finished" and math.isfinite(results["final"]["regret"])
