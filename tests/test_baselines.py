@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -35,7 +36,6 @@ from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
 from tests.test_training import tiny_config
 
-WITH_Q = sorted(set(ALGOS) - {"bc"})
 BELLMAN_FAMILY = ("wbrm", "brm", "fqi", "mabo")  # WeightedBellmanLoss and its subclass: held-out residual, γ by value
 
 
@@ -142,12 +142,25 @@ REGRET_FACTOR = 2.0
 Q_FACTOR = 2.0
 
 
+_RUN_DIRS: list[str] = []
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _forget_learning_runs():
+    """The learning runs are cached for this module's tests only: drop them (and their run directories) after it."""
+    yield
+    _learned.cache_clear()
+    for run_dir in _RUN_DIRS:
+        shutil.rmtree(run_dir, ignore_errors=True)
+
+
 @functools.cache
 def _learned(algo: str) -> dict:
-    """Train ``algo`` once (shared by the regret and the Q̂ test); returns its final figures and the baselines."""
+    """Train ``algo`` once (shared by the regret and the Q̂ tests); returns its trainer, figures and the baselines."""
     torch.set_num_threads(1)
     cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []))
-    trainer = WBRMTrainer(cfg, tempfile.mkdtemp(prefix=f"learn_{algo}_"), progress=False)
+    _RUN_DIRS.append(tempfile.mkdtemp(prefix=f"learn_{algo}_"))
+    trainer = WBRMTrainer(cfg, _RUN_DIRS[-1], progress=False)
     results = trainer.run()
     env = lqr_env(trainer.lqr_config)
     _, K = env.riccati()
