@@ -9,6 +9,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.ratio import (
     DensityRatioFitter,
     NonFiniteWeightsError,
@@ -183,3 +184,18 @@ def test_store_in_a_tensordict_keepdim_dtype_and_errors():
         store_density_ratio(td, torch.ones(3))
     with pytest.raises(ValueError, match="ratio_network"):
         store_density_ratio(td)
+
+
+def test_the_trainer_runs_stage_1_through_the_public_fitter(tmp_path):
+    from tests.test_training import tiny_config
+    from torchrl_wbrm.training import WBRMTrainer
+
+    torch.set_num_threads(1)
+    trainer = WBRMTrainer(tiny_config(ratio={"steps": 20, "eval_every": 10}, q={"steps": 2, "eval_every": 2}),
+                          tmp_path, progress=False)
+    assert isinstance(trainer.ratio_fitter, DensityRatioFitter)
+    assert isinstance(trainer.ratio_loss, RobustDensityRatioLoss) and trainer.ratio_loss is trainer.ratio_fitter.loss_module
+    trainer.run()
+    assert trainer.ratio_fitter.num_steps == 20 and trainer.ratio_best is trainer.ratio_fitter.best
+    w = compute_density_ratio(trainer.ratio_network, trainer.q_train_data)
+    torch.testing.assert_close(trainer.q_buffer[:]["density_ratio"], shape_weights(w, temper=trainer.cfg.ratio.temper))

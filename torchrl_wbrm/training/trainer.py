@@ -44,6 +44,7 @@ from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
+from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.policies import (
     lqr_true_density_ratio,
     make_lqr_behaviour,
@@ -64,7 +65,6 @@ from torchrl_wbrm.training.guards import (
     read_checkpoint,
     write_json,
 )
-from torchrl_wbrm.training.weights import shape_weights
 
 __all__ = ["WBRMTrainer", "set_seed", "get_rng_state", "set_rng_state"]
 
@@ -94,12 +94,6 @@ def _to_config(cfg) -> WBRMConfig:
     elif not isinstance(cfg, DictConfig):
         cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
-
-
-def _split(td: TensorDictBase, fraction: float, generator: torch.Generator):
-    perm = torch.randperm(td.shape[0], generator=generator)
-    n_hold = max(1, int(round(fraction * td.shape[0])))
-    return td[perm[n_hold:]], td[perm[:n_hold]]
 
 
 class WBRMTrainer:
@@ -181,6 +175,7 @@ class WBRMTrainer:
     def _setup_ratio(self) -> None:
         rc = self.cfg.ratio
         self.ratio_network = None
+        self.ratio_fitter: DensityRatioFitter | None = None
         if rc.source != "learned" or self.cfg.algo != "wbrm":
             return
         self.ratio_network = DensityRatioNetwork(
@@ -192,23 +187,46 @@ class WBRMTrainer:
             activation=rc.activation,
             layer_norm=rc.layer_norm,
         ).to(self.device)
-        self.ratio_loss = RobustDensityRatioLoss(
+        ratio_loss = RobustDensityRatioLoss(
             self.ratio_network,
             alpha="kl" if rc.divergence == "kl" else rc.alpha,
             normalisation_coefficient=rc.normalisation_coefficient,
             non_negative_correction=rc.non_negative_correction,
             relative_beta=rc.relative_beta,
         )
-        self.ratio_optim = torch.optim.Adam(self.ratio_loss.parameters(), lr=rc.lr, weight_decay=rc.weight_decay)
-        gen = torch.Generator().manual_seed(self.cfg.seed + 17)
-        b_train, b_hold = _split(self.datasets.behaviour_samples[:], rc.holdout_fraction, gen)
-        e_train, e_hold = _split(self.datasets.expert_samples[:], rc.holdout_fraction, gen)
-        self.ratio_sampler = PairedSampler(make_replay_buffer(b_train), make_replay_buffer(e_train), rc.batch_size)
-        keys = ("observation", "action")
-        self.ratio_holdout = TensorDict(
-            {"behaviour": b_hold.select(*keys), "expert": e_hold.select(*keys)}, batch_size=[]
+        ratio_params = list(ratio_loss.parameters())
+        optimiser = torch.optim.Adam(ratio_params, lr=rc.lr, weight_decay=rc.weight_decay)
+        # stage 1 is torchrl_wbrm.ratio's fitter (held-out split of S^b and S^e, best state, patience), stepped and
+        # evaluated from this trainer's loop
+        self.ratio_fitter = DensityRatioFitter(
+            ratio_loss, self.datasets.behaviour_samples, self.datasets.expert_samples, batch_size=rc.batch_size,
+            optimizer=optimiser, grad_clip=rc.grad_clip, holdout_fraction=rc.holdout_fraction,
+            generator=torch.Generator().manual_seed(self.cfg.seed + 17), patience=rc.patience, device=self.device,
         )
-        self.ratio_best = {"loss": math.inf, "state": copy.deepcopy(self.ratio_network.state_dict()), "bad": 0}
+        self.ratio_fitter.sampler = PairedSampler(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
+                                                  rc.batch_size)
+
+    # the stage-1 pieces, held by the fitter (names kept for scripts and tests written against the trainer)
+    @property
+    def ratio_loss(self) -> RobustDensityRatioLoss | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.loss_module
+
+    @property
+    def ratio_optim(self) -> torch.optim.Optimizer | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.optimizer
+
+    @ratio_optim.setter
+    def ratio_optim(self, optimiser: torch.optim.Optimizer) -> None:
+        self.ratio_fitter.optimizer = optimiser
+
+    @property
+    def ratio_best(self) -> dict | None:
+        """The early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, ``bad``."""
+        return None if self.ratio_fitter is None else self.ratio_fitter.best
+
+    @property
+    def ratio_holdout(self) -> TensorDict | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.holdout
 
     def _setup_q(self) -> None:
         """Stage 2 (or the baseline named by ``algo``): loss, optimisers, step function and evaluated policy."""
@@ -318,32 +336,19 @@ class WBRMTrainer:
 
     # ------------------------------------------------------------------ stage 1
     def _ratio_step(self, step: int) -> dict:
-        batch = self.ratio_sampler.sample().to(self.device)
-        out = self.ratio_loss(batch)
-        loss = out["loss_density_ratio"]
-        self.ratio_optim.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.cfg.ratio.grad_clip:
-            torch.nn.utils.clip_grad_norm_(self.ratio_loss.parameters(), self.cfg.ratio.grad_clip)
-        self.ratio_optim.step()
-        return {k: v.detach() for k, v in out.items() if v.ndim == 0}
+        return self.ratio_fitter.step()
 
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
-        out = self.ratio_loss(self.ratio_holdout.to(self.device))
-        held_out = out["loss_density_ratio"].item()
-        best = self.ratio_best
-        if held_out < best["loss"] - 1e-6:
-            best.update(loss=held_out, state=copy.deepcopy(self.ratio_network.state_dict()), bad=0, step=step)
-        else:
-            best["bad"] += 1
+        result = self.ratio_fitter.evaluate(step)
+        held_out = result["held_out_loss"]
         record = {"stage": "ratio", "step": step, "held_out_loss": held_out}
         record.update(self._ratio_truth_figures())
         self.history.append(record)
         if not math.isfinite(held_out):
             raise TrainingDiverged("ratio evaluation", step, "held_out_loss", held_out)
         self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
-        return best["bad"] >= self.cfg.ratio.patience
+        return result["stop"]
 
     @torch.no_grad()
     def _ratio_truth_figures(self) -> dict:
@@ -364,8 +369,7 @@ class WBRMTrainer:
         d = self.q_train_data.clone()
         source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
         if source == "learned":
-            w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
-                           for chunk in d.split(8192)]).cpu()
+            w = compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
         elif source == "exact":
             w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
             beta = self.cfg.ratio.relative_beta
@@ -374,10 +378,12 @@ class WBRMTrainer:
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
-        w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
-        if not bool(torch.isfinite(w).all()):
-            raise TrainingDiverged("weights over D", 0, "density_ratio", float(w[~torch.isfinite(w)][0]))
-        d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
+        try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
+            w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
+                                    self_normalise=rc.self_normalise and source != "none", keepdim=True,
+                                    dtype=d["observation"].dtype)
+        except NonFiniteWeightsError as err:
+            raise TrainingDiverged("weights over D", 0, "density_ratio", err.value) from err
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
@@ -472,7 +478,7 @@ class WBRMTrainer:
                     "ratio", self.cfg.ratio.steps, self._ratio_step,
                     eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval,
                 )
-                self.ratio_network.load_state_dict(self.ratio_best["state"])
+                self.ratio_fitter.best_network()  # the best held-out state
             self.state = {"stage": "q", "step": 0}
             self._build_q_buffer()
             self.save_checkpoint()
@@ -581,11 +587,9 @@ class WBRMTrainer:
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
         }
         if self.ratio_network is not None:
-            sd.update(
-                ratio_loss=self.ratio_loss.state_dict(),
-                ratio_optim=self.ratio_optim.state_dict(),
-                ratio_best=copy.deepcopy(self.ratio_best),
-            )
+            fitter = self.ratio_fitter.state_dict()
+            sd.update(ratio_loss=fitter["loss_module"], ratio_optim=fitter["optimizer"], ratio_best=fitter["best"],
+                      ratio_steps=fitter["num_steps"])
         return sd
 
     def save_checkpoint(self) -> Path:
@@ -621,9 +625,8 @@ class WBRMTrainer:
         for name, scheduler in self.schedulers.items():
             scheduler.load_state_dict(sd["schedulers"][name])
         if self.ratio_network is not None:
-            self.ratio_loss.load_state_dict(sd["ratio_loss"])
-            self.ratio_optim.load_state_dict(sd["ratio_optim"])
-            self.ratio_best = sd["ratio_best"]
+            self.ratio_fitter.load_state_dict({"loss_module": sd["ratio_loss"], "optimizer": sd["ratio_optim"],
+                                               "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
         if self.state["stage"] != "ratio":
             self._build_q_buffer()
         set_rng_state(sd["rng"])
