@@ -187,7 +187,10 @@ def _critic_step_fallback(algo, cfg, batch):
 
     loss = algo.loss
     if not hasattr(algo, "_bench_updater"):
-        from torchrl.objectives import SoftUpdate
+        try:  # the updater the algos build
+            from torchrl_wbrm.training.algos import ForeachSoftUpdate as SoftUpdate
+        except ImportError:
+            from torchrl.objectives import SoftUpdate
 
         algo._bench_updater = SoftUpdate(loss, tau=cfg.q.target_tau)
     value, _ = loss.value_loss(batch)

@@ -12,14 +12,17 @@ from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.modules import QValueActor
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
-from torchrl.objectives.value import ValueEstimatorBase
+from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
+from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
     GreedyDiscreteMaximiser,
     SampledActionMaximiser,
+    uniform_actions,
 )
+from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import check_reduction, check_sign, get_entry, per_sample, reduce_batch
 
 __all__ = ["RESIDUALS", "WeightedBellmanLoss", "weighted_bellman_residual"]
@@ -122,11 +125,6 @@ class WeightedBellmanLoss(LossModule):
         delay_actor (bool, optional): target copy of the actor for μ(x'). Defaults to ``delay_value``.
         use_weights (bool): read ŵ from ``"density_ratio"`` (``True``, default; a missing entry is a KeyError) or
             use weight 1 for every sample (the unweighted baseline).
-        use_prioritized_weights (bool or "auto"): TorchRL's convention (:class:`~torchrl.objectives.LossModule`):
-            with ``"auto"`` (default) or ``True``, a ``"priority_weight"`` entry in the batch (a prioritized replay
-            buffer's importance weights, or any per-sample weight stored there) multiplies each sample's term,
-            on top of ŵ when both are present; ``False`` ignores it. Unlike TorchRL's losses, which reduce a
-            weighted batch as ``Σ wᵢ lᵢ / Σ wᵢ``, the product stays inside this loss's own mean (``mean ŵᵢ pᵢ δᵢ²``).
         maximiser (str or ActionMaximiser, optional): ``"discrete"``, ``"actor"``, ``"sampled"`` or an instance.
             Defaults to ``"discrete"`` for a Q head, ``"actor"`` with an actor, ``"sampled"`` otherwise.
         action_spec (Bounded, optional): action box for ``"sampled"``; defaults to the actor's spec if it has one.
@@ -193,8 +191,6 @@ class WeightedBellmanLoss(LossModule):
             action_value (NestedKey): Where a discrete Q head writes the per-action values.
                 Defaults to ``"action_value"``.
             weight (NestedKey): The input key of the per-sample weight ŵ(x, a). Defaults to ``"density_ratio"``.
-            priority_weight (NestedKey): The input key of TorchRL's per-sample (importance) weight, multiplied with
-                ŵ when present (see ``use_prioritized_weights``). Defaults to ``"priority_weight"``.
             priority (NestedKey): The input tensordict key where δ² is written back. Defaults to ``"td_error"``.
             reward (NestedKey): The reward key, read under ``"next"``. Defaults to ``"reward"``.
             done (NestedKey): The done key, read under ``"next"``. Defaults to ``"done"``.
@@ -206,7 +202,6 @@ class WeightedBellmanLoss(LossModule):
         state_action_value: NestedKey = "state_action_value"
         action_value: NestedKey = "action_value"
         weight: NestedKey = "density_ratio"
-        priority_weight: NestedKey = "priority_weight"
         priority: NestedKey = "td_error"
         reward: NestedKey = "reward"
         done: NestedKey = "done"
@@ -216,6 +211,9 @@ class WeightedBellmanLoss(LossModule):
     default_keys = _AcceptedKeys
     default_value_estimator = ValueEstimators.TD0
     SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.TD0,)
+    #: Call plain networks on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through TensorDicts and
+    #: ``to_module``; the same computation (tested). Set ``False`` on an instance to force the TensorDict path.
+    fast_path: bool = True
 
     value_network: TensorDictModule
     value_network_params: TensorDictParams
@@ -233,7 +231,6 @@ class WeightedBellmanLoss(LossModule):
         delay_value: bool = True,
         delay_actor: bool | None = None,
         use_weights: bool = True,
-        use_prioritized_weights: str | bool = "auto",
         maximiser: str | ActionMaximiser | None = None,
         action_spec: TensorSpec | None = None,
         num_action_samples: int = 64,
@@ -251,8 +248,6 @@ class WeightedBellmanLoss(LossModule):
             raise ValueError("weight_actor_loss and bc_alpha configure the actor loss; pass an actor_network.")
         if bc_alpha is not None and not bc_alpha > 0:
             raise ValueError(f"bc_alpha must be > 0 or None, got {bc_alpha!r}.")
-        if use_prioritized_weights not in (True, False, "auto"):
-            raise ValueError(f"use_prioritized_weights must be True, False or 'auto', got {use_prioritized_weights!r}.")
         self._in_keys = None
         self._out_keys = None
         super().__init__()
@@ -262,7 +257,6 @@ class WeightedBellmanLoss(LossModule):
         self.delay_value = bool(delay_value)
         self.delay_actor = self.delay_value if delay_actor is None else bool(delay_actor)
         self.use_weights = bool(use_weights)
-        self.use_prioritized_weights = use_prioritized_weights
         self.weight_actor_loss = bool(weight_actor_loss)
         self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
         self.reduction = reduction
@@ -380,6 +374,51 @@ class WeightedBellmanLoss(LossModule):
         self._out_keys = values
 
     # ---------------------------------------------------------------- pieces
+    def _fast(self) -> tuple[FunctionalCall, FunctionalCall | None] | None:
+        """``(Q call, actor call)`` for the tensor path, or ``None`` where the TensorDict path is needed (a discrete
+        head, a custom maximiser, a network that is not a plain TensorDictModule, other output keys)."""
+        actor = self.actor_network if self.has_actor else None
+        cache = self.__dict__.get("_fast_cache")
+        if cache is not None and cache[0] is self.value_network and cache[1] is actor and cache[3] == self.fast_path:
+            return cache[2]
+        plan = None
+        if (
+            self.fast_path
+            and not self.discrete
+            and type(self.maximiser) in (ActorMaximiser, SampledActionMaximiser)
+            and list(self.value_network.out_keys) == [self.tensor_keys.state_action_value]
+            and (actor is None or list(actor.out_keys) == [self.tensor_keys.action])
+        ):
+            value_call = FunctionalCall.build(self.value_network, self.value_network_params)
+            actor_call = None if actor is None else FunctionalCall.build(actor, self.actor_network_params)
+            if value_call is not None and (actor is None or actor_call is not None):
+                plan = (value_call, actor_call)
+        self.__dict__["_fast_cache"] = (self.value_network, actor, plan, self.fast_path)
+        return plan
+
+    def _td0_target(self, tensordict: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
+        """``r + γ (1 − terminated) · next_value`` as the TD(0) estimator computes it (its keys, its γ), without the
+        TensorDict copy; other estimators (or options) go through ``value_estimate``."""
+        estimator = self.value_estimator
+        keys = getattr(estimator, "tensor_keys", None)
+        if (
+            not self.fast_path
+            or type(estimator) is not TD0Estimator
+            or getattr(estimator, "average_rewards", True)
+            or tensordict.get(keys.steps_to_next_obs, None) is not None
+        ):
+            reward = tensordict.get(_next(self.tensor_keys.reward))
+            return estimator.value_estimate(tensordict.copy(), next_value=next_value.reshape(reward.shape))
+        reward = tensordict.get(("next", keys.reward))
+        if estimator.gamma.device != reward.device:
+            estimator.gamma = estimator.gamma.to(reward.device)
+        done = tensordict.get(("next", keys.done))
+        terminated = tensordict.get(("next", keys.terminated), default=done)
+        return td0_return_estimate(
+            gamma=estimator.gamma, next_state_value=next_value.reshape(reward.shape), reward=reward,
+            terminated=terminated,
+        )
+
     def _inputs(self, tensordict: TensorDictBase, keys, why: str) -> TensorDict:
         """A new TensorDict holding ``keys`` of ``tensordict`` (so the input is never written to)."""
         return TensorDict(
@@ -389,31 +428,26 @@ class WeightedBellmanLoss(LossModule):
         )
 
     def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The per-sample weight, shape ``[*B]`` (detached: the weights are fixed in stage 2): ŵ (``use_weights``)
-        times the ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies."""
-        weight = None
-        if self.use_weights:
-            key = self.tensor_keys.weight
-            weight = get_entry(
-                tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build "
-                "the loss with use_weights=False"
-            )
-            weight = per_sample(weight, tensordict.batch_size, key).detach()
-            check_sign(weight, key, strictly_positive=False)
-        priority_key = self.tensor_keys.priority_weight
-        if self.use_prioritized_weights in (True, "auto") and not (self.use_weights and priority_key == self.tensor_keys.weight):
-            priority = tensordict.get(priority_key, None)
-            if priority is not None:
-                priority = per_sample(priority, tensordict.batch_size, priority_key).detach()
-                check_sign(priority, priority_key, strictly_positive=False)
-                weight = priority if weight is None else weight * priority
-        if weight is None:
+        """ŵ per sample, shape ``[*B]`` (detached: the weights are fixed in stage 2), or ones without weights."""
+        if not self.use_weights:
             reward = get_entry(tensordict, _next(self.tensor_keys.reward), "the reward")
             return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
+        key = self.tensor_keys.weight
+        weight = get_entry(
+            tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build the "
+            "loss with use_weights=False"
+        )
+        weight = per_sample(weight, tensordict.batch_size, key).detach()
+        check_sign(weight, key, strictly_positive=False)
         return weight
 
     def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Q(x, a) at the data's actions, shape ``[*B]``, with the online parameters (differentiable)."""
+        fast = self._fast()
+        if fast is not None:
+            tensors = [get_entry(tensordict, key, "an input of the value network") for key in self.value_network.in_keys]
+            key = self.tensor_keys.state_action_value
+            return per_sample(fast[0](self.value_network_params, *tensors), tensordict.batch_size, key)
         keys = self._observation_keys if self.discrete else self.value_network.in_keys
         inputs = self._inputs(tensordict, keys, "an input of the value network")
         with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
@@ -443,6 +477,9 @@ class WeightedBellmanLoss(LossModule):
     def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad."""
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
+        fast = self._fast()
+        if fast is not None:
+            return self._fast_next_state_value(next_td, fast)
         next_inputs = self._inputs(next_td, self._observation_keys, "a next-state input of the value network")
         actor_action = None
         if self.has_actor:
@@ -459,6 +496,40 @@ class WeightedBellmanLoss(LossModule):
                     actor_action=actor_action,
                 )
 
+    def _fast_next_state_value(self, next_td: TensorDictBase, fast) -> torch.Tensor:
+        """:meth:`next_state_value` on tensors: the same candidates (μ'(x'), or the uniform draws then μ'(x')), the
+        same ``[K, *B]`` evaluation of Q and the max over K."""
+        value_call, actor_call = fast
+        action_key = self.tensor_keys.action
+        batch = next_td.batch_size
+        next_inputs = {key: get_entry(next_td, key, "a next-state input of the value network")
+                       for key in self._observation_keys}
+        actor_action = None
+        if actor_call is not None:
+            with torch.no_grad():  # the value loss never trains the actor
+                actor_in = [get_entry(next_td, key, "an input of the actor") for key in self.actor_network.in_keys]
+                actor_action = actor_call(self.target_actor_network_params, *actor_in)
+        params = self.target_value_network_params if self.delay_value else self.value_network_params
+        with torch.no_grad() if self.delay_value else nullcontext():
+            if isinstance(self.maximiser, SampledActionMaximiser):
+                m = self.maximiser
+                candidates = uniform_actions(m.low, m.high, m.num_samples, batch)
+                if actor_action is not None:
+                    candidates = torch.cat([candidates, actor_action.unsqueeze(0)], 0)
+            else:
+                if actor_action is None:
+                    raise ValueError("ActorMaximiser needs actor_action = μ(x); build the loss with an actor_network.")
+                candidates = actor_action.unsqueeze(0)
+            k = candidates.shape[0]
+            tensors = []
+            for key in self.value_network.in_keys:
+                if key == action_key:
+                    tensors.append(candidates)
+                else:
+                    tensors.append(next_inputs[key].expand(k, *next_inputs[key].shape))
+            values = value_call(params, *tensors).squeeze(-1)  # [K, *B]
+            return values.max(0).values
+
     # ---------------------------------------------------------------- losses
     def bellman_error(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``(Q(x_i, a_i), Y_i)``, each of shape ``[*B]``, with ``Y_i = r_i + γ (1 − terminated_i) max Q(x'_i, ·)``.
@@ -472,9 +543,7 @@ class WeightedBellmanLoss(LossModule):
         reward = tensordict.get(_next(self.tensor_keys.reward))
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
-        target_value = self.value_estimator.value_estimate(
-            tensordict.copy(), next_value=next_value.reshape(reward.shape)
-        )
+        target_value = self._td0_target(tensordict, next_value)
         return q_value, per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -512,13 +581,22 @@ class WeightedBellmanLoss(LossModule):
         """
         if not self.has_actor:
             raise ValueError("actor_loss needs an actor_network; this loss was built without one.")
-        mu = self._actor_action(tensordict, self.actor_network_params)
-        q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
-        q_inputs.set(self.tensor_keys.action, mu)
-        with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
-            q_outputs = self.value_network(q_inputs)
         key = self.tensor_keys.state_action_value
-        q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
+        fast = self._fast()
+        if fast is not None:
+            value_call, actor_call = fast
+            actor_in = [get_entry(tensordict, k, "an input of the actor") for k in self.actor_network.in_keys]
+            mu = actor_call(self.actor_network_params, *actor_in)
+            q_in = [mu if k == self.tensor_keys.action else get_entry(tensordict, k, "an input of the value network")
+                    for k in self.value_network.in_keys]
+            q_actor = per_sample(value_call(self.value_network_params, *q_in, detach=True), tensordict.batch_size, key)
+        else:
+            mu = self._actor_action(tensordict, self.actor_network_params)
+            q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
+            q_inputs.set(self.tensor_keys.action, mu)
+            with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
+                q_outputs = self.value_network(q_inputs)
+            q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
         per_sample_loss = -q_actor
         diagnostics = {"actor_q_mean": q_actor.detach().mean()}
         if self.bc_alpha is not None:

@@ -1,0 +1,235 @@
+"""The hot-path shortcuts compute exactly what the TensorDict paths compute (no timings are asserted here; the
+figures are printed by benchmarks/)."""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
+from torchrl.objectives import SoftUpdate
+
+from torchrl_wbrm.data import make_replay_buffer
+from torchrl_wbrm.data.datasets import PairedSampler
+from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
+from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
+from torchrl_wbrm.objectives._fast import ForeachSoftUpdate, FunctionalCall
+from torchrl_wbrm.training.algos import adam_options
+from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
+
+SPEC = Bounded(-2.0, 2.0, (2,))
+
+
+def _data(n=64, seed=0, terminated=True):
+    g = torch.Generator().manual_seed(seed)
+    term = torch.rand(n, 1, generator=g) < 0.2 if terminated else torch.zeros(n, 1, dtype=torch.bool)
+    return TensorDict(
+        {
+            "observation": torch.randn(n, 3, generator=g),
+            "action": 2 * torch.rand(n, 2, generator=g) - 1,
+            "density_ratio": torch.rand(n, 1, generator=g) + 0.1,
+            "episode": torch.arange(n),
+            "next": {"observation": torch.randn(n, 3, generator=g), "reward": torch.randn(n, 1, generator=g),
+                     "done": term.clone(), "terminated": term},
+        },
+        [n],
+    )
+
+
+def _pair(**kwargs):
+    torch.manual_seed(0)
+    q = make_q_network(3, 2, num_cells=(16, 16), activation="SiLU")
+    actor = make_deterministic_actor(3, SPEC, num_cells=(16,))
+    fast = WeightedBellmanLoss(q, actor_network=actor, **kwargs)
+    fast.make_value_estimator(gamma=0.9)
+    slow = copy.deepcopy(fast)
+    slow.fast_path = False
+    return fast, slow
+
+
+def _grads(loss):
+    return {k: (None if p.grad is None else p.grad.clone()) for k, p in loss.named_parameters()}
+
+
+@pytest.mark.parametrize("kwargs", [
+    {}, {"delay_value": False, "delay_actor": False}, {"residual": "absolute_mean"}, {"maximiser": "sampled", "num_action_samples": 8},
+    {"bc_alpha": 2.5, "weight_actor_loss": True}, {"use_weights": False},
+])
+def test_weighted_bellman_fast_path_equals_the_tensordict_path(kwargs):
+    fast, slow = _pair(**kwargs)
+    assert fast._fast() is not None and slow._fast() is None
+    if fast.delay_value:
+        for loss in (fast, slow):
+            SoftUpdate(loss, tau=0.1)
+        with torch.no_grad():  # targets that differ from the online networks
+            for a, b in zip(fast.target_value_network_params.values(True, True),
+                            slow.target_value_network_params.values(True, True)):
+                a.add_(0.1), b.add_(0.1)
+    data = _data()
+    outs = {}
+    for name, loss in (("fast", fast), ("slow", slow)):
+        torch.manual_seed(1)  # the sampled maximiser draws
+        out = loss(data.clone())
+        (out["loss_value"] + out["loss_actor"]).backward()
+        outs[name] = (out, _grads(loss))
+    (out_f, g_f), (out_s, g_s) = outs["fast"], outs["slow"]
+    assert set(out_f.keys()) == set(out_s.keys())
+    for key in out_f.keys():
+        assert torch.equal(out_f[key], out_s[key]), key
+    for key in g_f:
+        assert (g_f[key] is None) == (g_s[key] is None), key
+        if g_f[key] is not None:
+            assert torch.equal(g_f[key], g_s[key]), key
+
+
+def test_actor_loss_fast_path_leaves_q_without_gradient():
+    fast, _ = _pair()
+    loss_actor, _ = fast.actor_loss(_data())
+    loss_actor.backward()
+    assert all(p.grad is None for p in fast.value_network_params.values(True, True))
+    assert any(p.grad is not None for p in fast.actor_network_params.values(True, True))
+
+
+def test_fast_path_is_skipped_for_networks_it_cannot_call_on_tensors():
+    q = make_q_network(3, 2, num_cells=(8,))
+    safe_actor = make_deterministic_actor(3, SPEC, num_cells=(8,))
+    safe_actor.safe = True
+    loss = WeightedBellmanLoss(q, actor_network=safe_actor)
+    assert loss._fast() is None
+    hooked = make_q_network(3, 2, num_cells=(8,))
+    hooked.register_forward_hook(lambda *args: None)
+    assert FunctionalCall.build(hooked, WeightedBellmanLoss(hooked, action_spec=SPEC).value_network_params) is None
+
+
+def test_fast_call_restores_the_meta_module_even_on_error():
+    fast, _ = _pair()
+    net = fast.value_network
+    before = {n: p for n, p in net.named_parameters()}
+    with pytest.raises(RuntimeError):
+        fast._fast()[0](fast.value_network_params, torch.zeros(4, 1), torch.zeros(4, 1))  # wrong width
+    after = dict(net.named_parameters())
+    assert after.keys() == before.keys() and all(after[n] is before[n] for n in before)
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"normalisation_coefficient": 1.0, "non_negative_correction": 0.2},
+                                    {"alpha": "kl"}])
+def test_ratio_fast_path_equals_the_tensordict_path(kwargs):
+    torch.manual_seed(0)
+    fast = RobustDensityRatioLoss(DensityRatioNetwork(3, 2, num_cells=(16,)), **kwargs)
+    slow = copy.deepcopy(fast)
+    slow.fast_path = False
+    assert fast._fast() is not None and slow._fast() is None
+    d = _data(32)
+    batch = TensorDict({"behaviour": d.select("observation", "action"),
+                        "expert": _data(16, seed=1).select("observation", "action")}, [])
+    outs = []
+    for loss in (fast, slow):
+        out = loss(batch)
+        out["loss_density_ratio"].backward()
+        outs.append((out, _grads(loss)))
+    for key in outs[0][0].keys():
+        assert torch.equal(outs[0][0][key], outs[1][0][key]), key
+    for key, grad in outs[0][1].items():
+        assert torch.equal(grad, outs[1][1][key]), key
+
+
+def test_foreach_soft_update_is_bitwise_torchrl_soft_update():
+    a, _ = _pair()
+    b = copy.deepcopy(a)
+    ua, ub = SoftUpdate(a, tau=0.05), ForeachSoftUpdate(b, tau=0.05)
+    with torch.no_grad():
+        for pa, pb in zip(a.parameters(), b.parameters()):
+            noise = torch.randn_like(pa)
+            pa.add_(noise), pb.add_(noise)
+    for _ in range(3):
+        ua.step(), ub.step()
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    # the actor's fixed bounds (buffers) are not "updated", as in torchrl
+    assert len(ub._slots()) == len(ua._sources.keys(True, True))
+
+
+def test_adam_options_fused_on_cpu_params_only():
+    p = torch.nn.Parameter(torch.zeros(3))
+    assert adam_options([p]) == {"fused": True}
+    assert adam_options([]) == {}
+    assert adam_options([torch.zeros(3, dtype=torch.int64)]) == {}
+    torch.optim.Adam([p], lr=1e-3, **adam_options([p])).step()  # accepted by torch
+
+
+def test_buffer_batches_draw_what_buffer_sample_draws():
+    data = _data(500)
+    buffer = make_replay_buffer(data, batch_size=32)
+    batches = BufferBatches(buffer)
+    torch.manual_seed(5)
+    expected = [buffer.sample().exclude("index") for _ in range(3)]
+    torch.manual_seed(5)
+    got = [batches.sample().clone() for _ in range(3)]
+    for e, g in zip(expected, got):
+        assert set(e.keys(True, True)) == set(g.keys(True, True))
+        assert (e == g).all()
+
+
+def test_buffer_batches_do_not_leak_entries_between_draws():
+    batches = BufferBatches(make_replay_buffer(_data(100), batch_size=8))
+    first = batches.sample()
+    first.set("td_error", torch.zeros(8, 1))
+    assert "td_error" not in batches.sample().keys()
+
+
+def test_paired_batches_draw_what_paired_sampler_draws():
+    b, e = make_replay_buffer(_data(300)), make_replay_buffer(_data(120, seed=3).select("observation", "action"))
+    sampler, batches = PairedSampler(b, e, 16), PairedBatches(b, e, 16)
+    torch.manual_seed(2)
+    expected = sampler.sample()
+    torch.manual_seed(2)
+    got = batches.sample()
+    assert expected.batch_size == got.batch_size
+    assert set(expected.keys(True, True)) == set(got.keys(True, True))
+    assert (expected == got).all()
+
+
+class _NoisyLinearPolicy(TensorDictModuleBase):
+    """a = −Kx + 0.1·N(0, I) from torch's global generator (the rollouts must draw in the same order)."""
+
+    def __init__(self, K):
+        super().__init__()
+        self.in_keys, self.out_keys = ["observation"], ["action"]
+        self.K = K
+
+    def forward(self, tensordict):
+        x = tensordict.get("observation")
+        return tensordict.set("action", -x @ self.K.T + 0.1 * torch.randn(x.shape[:-1] + (self.K.shape[0],)))
+
+
+@pytest.mark.parametrize("batch, max_steps", [((), 20), ((1,), 5), ((7,), 20), ((3,), 50), ((2, 3), 20)])
+def test_lqr_rollout_shortcut_equals_torchrl_rollout(batch, max_steps):
+    from torchrl.envs import EnvBase
+
+    from torchrl_wbrm.envs import LQREnv
+
+    envs = [LQREnv("exp2", batch_size=batch, seed=3) for _ in range(2)]
+    policy = _NoisyLinearPolicy(envs[0].riccati()[1].float())
+    outs = []
+    for env, rollout in zip(envs, (LQREnv.rollout, EnvBase.rollout)):
+        torch.manual_seed(0)
+        outs.append([rollout(env, max_steps, policy) for _ in range(2)])  # twice: the second starts from a reset
+    for fast, slow in zip(*outs):
+        assert type(fast) is type(slow)
+        assert fast.batch_size == slow.batch_size and fast.names == slow.names and fast.device == slow.device
+        assert set(fast.keys(True, True)) == set(slow.keys(True, True))
+        assert all(torch.equal(fast.get(k), slow.get(k)) for k in slow.keys(True, True))
+    assert torch.equal(envs[0]._step_count, envs[1]._step_count)
+    assert torch.equal(envs[0].rng.get_state(), envs[1].rng.get_state())
+
+
+def test_lqr_rollout_other_arguments_take_torchrl_path():
+    from torchrl_wbrm.envs import LQREnv
+
+    env = LQREnv("exp1", batch_size=[2], seed=0)
+    out = env.rollout(45, break_when_any_done=False)  # random actions, auto-reset after 20 steps
+    assert out.shape == (2, 45)
+    assert bool(out["next", "truncated"][:, 19].all()) and not bool(out["next", "truncated"][:, 20].any())
