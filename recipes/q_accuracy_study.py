@@ -99,6 +99,11 @@ BLOCKS: dict[str, dict[str, list[str]]] = {
 }
 #: levels run on every system in --systems; the other levels run on --factor-systems (all five by default)
 EVERY_SYSTEM_LEVELS = {("activation", "ReLU"), ("weighting", "unweighted")}
+#: the run order of the 3-seed cells, most informative first, so that an interrupted study has the headline cells:
+#: the activation contrast, the candidates most likely to cut Q̂'s error (a decaying learning rate, a longer budget,
+#: an averaged ensemble), the weighting contrast; the rest in block order
+PRIORITY = [("activation", "ReLU"), ("lr schedule", "cosine"), ("step budget", "6000"), ("ensemble", "two, mean"),
+            ("weighting", "unweighted")]
 MOUNTAIN_CAR = {
     "wbrm (the recipe's default)": [],
     "td3bc, same budget": ["algo=td3bc"],
@@ -131,6 +136,8 @@ def build_cells(quick: bool, blocks: list[str], systems=SYSTEMS, factor_systems=
             for env in systems if (block, level) in EVERY_SYSTEM_LEVELS else factor_systems:
                 cells.append({"block": block, "env": env, "setting": block, "method": level,
                               "overrides": [f"env={env}", *extra], "seeds": 3})
+    rank = {key: i for i, key in enumerate(PRIORITY)}
+    cells.sort(key=lambda c: (c["block"] != DEFAULT, rank.get((c["block"], c["method"]), len(rank))))  # stable
     if "mountain_car" in blocks and not quick:
         for method, extra in MOUNTAIN_CAR.items():
             cells.append({"block": "mountain_car", "env": "mountain_car", "setting": "defaults", "method": method,
