@@ -125,6 +125,11 @@ class WeightedBellmanLoss(LossModule):
         delay_actor (bool, optional): target copy of the actor for μ(x'). Defaults to ``delay_value``.
         use_weights (bool): read ŵ from ``"density_ratio"`` (``True``, default; a missing entry is a KeyError) or
             use weight 1 for every sample (the unweighted baseline).
+        use_prioritized_weights (bool or "auto"): TorchRL's convention (:class:`~torchrl.objectives.LossModule`):
+            with ``"auto"`` (default) or ``True``, a ``"priority_weight"`` entry in the batch (a prioritized replay
+            buffer's importance weights, or any per-sample weight stored there) multiplies each sample's term,
+            on top of ŵ when both are present; ``False`` ignores it. Unlike TorchRL's losses, which reduce a
+            weighted batch as ``Σ wᵢ lᵢ / Σ wᵢ``, the product stays inside this loss's own mean (``mean ŵᵢ pᵢ δᵢ²``).
         maximiser (str or ActionMaximiser, optional): ``"discrete"``, ``"actor"``, ``"sampled"`` or an instance.
             Defaults to ``"discrete"`` for a Q head, ``"actor"`` with an actor, ``"sampled"`` otherwise.
         action_spec (Bounded, optional): action box for ``"sampled"``; defaults to the actor's spec if it has one.
@@ -191,6 +196,8 @@ class WeightedBellmanLoss(LossModule):
             action_value (NestedKey): Where a discrete Q head writes the per-action values.
                 Defaults to ``"action_value"``.
             weight (NestedKey): The input key of the per-sample weight ŵ(x, a). Defaults to ``"density_ratio"``.
+            priority_weight (NestedKey): The input key of TorchRL's per-sample (importance) weight, multiplied with
+                ŵ when present (see ``use_prioritized_weights``). Defaults to ``"priority_weight"``.
             priority (NestedKey): The input tensordict key where δ² is written back. Defaults to ``"td_error"``.
             reward (NestedKey): The reward key, read under ``"next"``. Defaults to ``"reward"``.
             done (NestedKey): The done key, read under ``"next"``. Defaults to ``"done"``.
@@ -202,6 +209,7 @@ class WeightedBellmanLoss(LossModule):
         state_action_value: NestedKey = "state_action_value"
         action_value: NestedKey = "action_value"
         weight: NestedKey = "density_ratio"
+        priority_weight: NestedKey = "priority_weight"
         priority: NestedKey = "td_error"
         reward: NestedKey = "reward"
         done: NestedKey = "done"
@@ -231,6 +239,7 @@ class WeightedBellmanLoss(LossModule):
         delay_value: bool = True,
         delay_actor: bool | None = None,
         use_weights: bool = True,
+        use_prioritized_weights: str | bool = "auto",
         maximiser: str | ActionMaximiser | None = None,
         action_spec: TensorSpec | None = None,
         num_action_samples: int = 64,
@@ -248,6 +257,8 @@ class WeightedBellmanLoss(LossModule):
             raise ValueError("weight_actor_loss and bc_alpha configure the actor loss; pass an actor_network.")
         if bc_alpha is not None and not bc_alpha > 0:
             raise ValueError(f"bc_alpha must be > 0 or None, got {bc_alpha!r}.")
+        if use_prioritized_weights not in (True, False, "auto"):
+            raise ValueError(f"use_prioritized_weights must be True, False or 'auto', got {use_prioritized_weights!r}.")
         self._in_keys = None
         self._out_keys = None
         super().__init__()
@@ -257,6 +268,7 @@ class WeightedBellmanLoss(LossModule):
         self.delay_value = bool(delay_value)
         self.delay_actor = self.delay_value if delay_actor is None else bool(delay_actor)
         self.use_weights = bool(use_weights)
+        self.use_prioritized_weights = use_prioritized_weights
         self.weight_actor_loss = bool(weight_actor_loss)
         self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
         self.reduction = reduction
@@ -428,17 +440,27 @@ class WeightedBellmanLoss(LossModule):
         )
 
     def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """ŵ per sample, shape ``[*B]`` (detached: the weights are fixed in stage 2), or ones without weights."""
-        if not self.use_weights:
+        """The per-sample weight, shape ``[*B]`` (detached: the weights are fixed in stage 2): ŵ (``use_weights``)
+        times the ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies."""
+        weight = None
+        if self.use_weights:
+            key = self.tensor_keys.weight
+            weight = get_entry(
+                tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build "
+                "the loss with use_weights=False"
+            )
+            weight = per_sample(weight, tensordict.batch_size, key).detach()
+            check_sign(weight, key, strictly_positive=False)
+        priority_key = self.tensor_keys.priority_weight
+        if self.use_prioritized_weights in (True, "auto") and not (self.use_weights and priority_key == self.tensor_keys.weight):
+            priority = tensordict.get(priority_key, None)
+            if priority is not None:
+                priority = per_sample(priority, tensordict.batch_size, priority_key).detach()
+                check_sign(priority, priority_key, strictly_positive=False)
+                weight = priority if weight is None else weight * priority
+        if weight is None:
             reward = get_entry(tensordict, _next(self.tensor_keys.reward), "the reward")
             return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
-        key = self.tensor_keys.weight
-        weight = get_entry(
-            tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build the "
-            "loss with use_weights=False"
-        )
-        weight = per_sample(weight, tensordict.batch_size, key).detach()
-        check_sign(weight, key, strictly_positive=False)
         return weight
 
     def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:

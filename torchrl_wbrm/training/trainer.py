@@ -44,6 +44,7 @@ from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
+from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.policies import (
     lqr_true_density_ratio,
     make_lqr_behaviour,
@@ -53,7 +54,18 @@ from torchrl_wbrm.policies import (
 from torchrl_wbrm.training.algos import Algo, AlgoContext, adam_options, build_algo
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
-from torchrl_wbrm.training.weights import shape_weights
+from torchrl_wbrm.training.guards import (
+    RunInterrupted,
+    StopSignals,
+    TrainingDiverged,
+    check_resume_config,
+    check_run_dir,
+    first_non_finite,
+    json_safe,
+    non_finite_parameter,
+    read_checkpoint,
+    write_json,
+)
 
 __all__ = ["WBRMTrainer", "set_seed", "get_rng_state", "set_rng_state"]
 
@@ -85,12 +97,6 @@ def _to_config(cfg) -> WBRMConfig:
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
 
 
-def _split(td: TensorDictBase, fraction: float, generator: torch.Generator):
-    perm = torch.randperm(td.shape[0], generator=generator)
-    n_hold = max(1, int(round(fraction * td.shape[0])))
-    return td[perm[n_hold:]], td[perm[:n_hold]]
-
-
 class WBRMTrainer:
     """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
 
@@ -109,6 +115,20 @@ class WBRMTrainer:
         validate_config(self.cfg)
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        # before any data are collected: the checkpoint is read and the config compared (resume), or the directory
+        # is checked for an earlier run (a new run never overwrites one without overwrite=true)
+        self._resume_sd, self.resume_changes = None, {}
+        if resume:
+            path = self.run_dir / CHECKPOINT
+            self._resume_sd = read_checkpoint(path)
+            self.resume_changes = check_resume_config(
+                path, dict(self._resume_sd["config"]), OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+                self._resume_sd["state"],
+            )
+        else:
+            check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)
+        self._stop = None  # StopSignals while run() runs
+        self._checkpoint_state: dict | None = None  # the state of the last checkpoint written (all finite)
         self.logger = logger
         self.progress = progress
         self.device = torch.device(self.cfg.device)
@@ -156,6 +176,7 @@ class WBRMTrainer:
     def _setup_ratio(self) -> None:
         rc = self.cfg.ratio
         self.ratio_network = None
+        self.ratio_fitter: DensityRatioFitter | None = None
         if rc.source != "learned" or self.cfg.algo != "wbrm":
             return
         self.ratio_network = DensityRatioNetwork(
@@ -167,28 +188,48 @@ class WBRMTrainer:
             activation=rc.activation,
             layer_norm=rc.layer_norm,
         ).to(self.device)
-        self.ratio_loss = RobustDensityRatioLoss(
+        ratio_loss = RobustDensityRatioLoss(
             self.ratio_network,
             alpha="kl" if rc.divergence == "kl" else rc.alpha,
             normalisation_coefficient=rc.normalisation_coefficient,
             non_negative_correction=rc.non_negative_correction,
             relative_beta=rc.relative_beta,
         )
-        ratio_params = list(self.ratio_loss.parameters())
-        self.ratio_optim = torch.optim.Adam(ratio_params, lr=rc.lr, weight_decay=rc.weight_decay,
-                                            **adam_options(ratio_params))
-        gen = torch.Generator().manual_seed(self.cfg.seed + 17)
-        b_train, b_hold = _split(self.datasets.behaviour_samples[:], rc.holdout_fraction, gen)
-        e_train, e_hold = _split(self.datasets.expert_samples[:], rc.holdout_fraction, gen)
-        b_buffer, e_buffer = make_replay_buffer(b_train), make_replay_buffer(e_train)
-        self.ratio_sampler = PairedSampler(b_buffer, e_buffer, rc.batch_size)
-        # the same draws as ratio_sampler, gathered straight into preallocated tensors on the device
-        self.ratio_batches = PairedBatches(b_buffer, e_buffer, rc.batch_size, device=self.device)
-        keys = ("observation", "action")
-        self.ratio_holdout = TensorDict(
-            {"behaviour": b_hold.select(*keys), "expert": e_hold.select(*keys)}, batch_size=[]
+        ratio_params = list(ratio_loss.parameters())
+        optimiser = torch.optim.Adam(ratio_params, lr=rc.lr, weight_decay=rc.weight_decay, **adam_options(ratio_params))
+        # stage 1 is torchrl_wbrm.ratio's fitter (held-out split of S^b and S^e, best state, patience), stepped and
+        # evaluated from this trainer's loop
+        self.ratio_fitter = DensityRatioFitter(
+            ratio_loss, self.datasets.behaviour_samples, self.datasets.expert_samples, batch_size=rc.batch_size,
+            optimizer=optimiser, grad_clip=rc.grad_clip, holdout_fraction=rc.holdout_fraction,
+            generator=torch.Generator().manual_seed(self.cfg.seed + 17), patience=rc.patience, device=self.device,
         )
-        self.ratio_best = {"loss": math.inf, "state": copy.deepcopy(self.ratio_network.state_dict()), "bad": 0}
+        # the fitter's paired batches (PairedSampler's draws), gathered straight into preallocated tensors on the device
+        self.ratio_batches = PairedBatches(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
+                                           rc.batch_size, device=self.device)
+        self.ratio_fitter.sampler = self.ratio_batches
+
+    # the stage-1 pieces, held by the fitter (names kept for scripts and tests written against the trainer)
+    @property
+    def ratio_loss(self) -> RobustDensityRatioLoss | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.loss_module
+
+    @property
+    def ratio_optim(self) -> torch.optim.Optimizer | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.optimizer
+
+    @ratio_optim.setter
+    def ratio_optim(self, optimiser: torch.optim.Optimizer) -> None:
+        self.ratio_fitter.optimizer = optimiser
+
+    @property
+    def ratio_best(self) -> dict | None:
+        """The early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, ``bad``."""
+        return None if self.ratio_fitter is None else self.ratio_fitter.best
+
+    @property
+    def ratio_holdout(self) -> TensorDict | None:
+        return None if self.ratio_fitter is None else self.ratio_fitter.holdout
 
     def _setup_q(self) -> None:
         """Stage 2 (or the baseline named by ``algo``): loss, optimisers, step function and evaluated policy."""
@@ -266,6 +307,9 @@ class WBRMTrainer:
         try:
             for step in range(start + 1, stop + 1):
                 figures = step_fn(step)
+                bad = first_non_finite(figures)
+                if bad is not None:  # nothing of this step is checkpointed
+                    raise TrainingDiverged(name, step, bad[0], bad[1])
                 self.state["step"] = step
                 if step % log_every == 0 or step == stop:
                     running = {k: float(v) for k, v in figures.items()}
@@ -278,6 +322,9 @@ class WBRMTrainer:
                 if ckpt_every and step % ckpt_every == 0 and step != stop:
                     self.save_checkpoint()
                 bar.update(1)
+                if self._stop is not None and self._stop.received is not None:
+                    self.save_checkpoint()
+                    raise RunInterrupted(self._stop.received, name, step, self.run_dir)
                 if finished_early:
                     break
         finally:
@@ -292,30 +339,19 @@ class WBRMTrainer:
 
     # ------------------------------------------------------------------ stage 1
     def _ratio_step(self, step: int) -> dict:
-        batch = self.ratio_batches.sample()
-        out = self.ratio_loss(batch)
-        loss = out["loss_density_ratio"]
-        self.ratio_optim.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.cfg.ratio.grad_clip:
-            torch.nn.utils.clip_grad_norm_(self.ratio_loss.parameters(), self.cfg.ratio.grad_clip)
-        self.ratio_optim.step()
-        return {k: v.detach() for k, v in out.items() if v.ndim == 0}
+        return self.ratio_fitter.step()
 
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
-        out = self.ratio_loss(self.ratio_holdout.to(self.device))
-        held_out = out["loss_density_ratio"].item()
-        best = self.ratio_best
-        if held_out < best["loss"] - 1e-6:
-            best.update(loss=held_out, state=copy.deepcopy(self.ratio_network.state_dict()), bad=0, step=step)
-        else:
-            best["bad"] += 1
+        result = self.ratio_fitter.evaluate(step)
+        held_out = result["held_out_loss"]
         record = {"stage": "ratio", "step": step, "held_out_loss": held_out}
         record.update(self._ratio_truth_figures())
         self.history.append(record)
+        if not math.isfinite(held_out):
+            raise TrainingDiverged("ratio evaluation", step, "held_out_loss", held_out)
         self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
-        return best["bad"] >= self.cfg.ratio.patience
+        return result["stop"]
 
     @torch.no_grad()
     def _ratio_truth_figures(self) -> dict:
@@ -336,8 +372,7 @@ class WBRMTrainer:
         d = self.q_train_data.clone()
         source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
         if source == "learned":
-            w = torch.cat([self.ratio_network(chunk.select("observation", "action").to(self.device))["density_ratio"]
-                           for chunk in d.split(8192)]).cpu()
+            w = compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
         elif source == "exact":
             w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
             beta = self.cfg.ratio.relative_beta
@@ -346,8 +381,12 @@ class WBRMTrainer:
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
-        w = shape_weights(w, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise and source != "none")
-        d.set("density_ratio", w.reshape(d.shape[0], 1).to(d["observation"].dtype))
+        try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
+            w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
+                                    self_normalise=rc.self_normalise and source != "none", keepdim=True,
+                                    dtype=d["observation"].dtype)
+        except NonFiniteWeightsError as err:
+            raise TrainingDiverged("weights over D", 0, "density_ratio", err.value) from err
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
@@ -376,6 +415,9 @@ class WBRMTrainer:
         final = step == self.cfg.q.steps
         record = {"stage": "q", "step": step, **self.evaluate(final=final)}
         self.history.append(record)
+        bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
+        if bad is not None:
+            raise TrainingDiverged("q evaluation", step, bad[0], bad[1])
         self._log({f"eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
         return None
 
@@ -425,15 +467,28 @@ class WBRMTrainer:
     def run(self, *, until: int | None = None) -> dict | None:
         """Run (or continue) both stages. ``until``: stop stage 2 after this step (for interruption tests).
 
-        Returns the results dict (also written to ``results.json``), or ``None`` when stopped by ``until``.
+        Returns the results dict (also written to ``results.json``; ``"status"`` is ``"finished"``, or
+        ``"diverged"`` when a non-finite loss, Q, ratio or parameter stopped the run: the last finite checkpoint is
+        kept and ``"diverged"`` names the stage, step and figure), or ``None`` when stopped by ``until``. SIGINT and
+        SIGTERM stop it at the next step boundary: a checkpoint is written and :class:`RunInterrupted` raised.
         """
+        try:
+            with StopSignals() as self._stop:
+                return self._run(until=until)
+        except TrainingDiverged as err:
+            err.checkpoint_step = None if self._checkpoint_state is None else self._checkpoint_state["step"]
+            return self._diverged_results(err)
+        finally:
+            self._stop = None
+
+    def _run(self, *, until: int | None) -> dict | None:
         if self.state["stage"] == "ratio":
             if self.ratio_network is not None:
                 self._run_stage(
                     "ratio", self.cfg.ratio.steps, self._ratio_step,
                     eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval,
                 )
-                self.ratio_network.load_state_dict(self.ratio_best["state"])
+                self.ratio_fitter.best_network()  # the best held-out state
             self.state = {"stage": "q", "step": 0}
             self._build_q_buffer()
             self.save_checkpoint()
@@ -450,16 +505,52 @@ class WBRMTrainer:
                 return None
             self.state = {"stage": "done", "step": self.cfg.q.steps}
             self.save_checkpoint()
+        elif any(k.startswith("eval.") for k in self.resume_changes):  # a finished run, evaluated anew
+            self._q_eval(self.cfg.q.steps)
         return self.results()
+
+    #: |Q̂| beyond this many times r_max / (1 − γ) is flagged as a blow-up (Q* lies within r_max / (1 − γ)).
+    BLOW_UP_FACTOR = 10.0
+
+    def _q_scale(self, final: dict) -> dict:
+        """The largest |mean Q̂| the run reports (final evaluation, last training figures) against r_max / (1 − γ)."""
+        r_max = float(self.datasets.transitions[:]["next", "reward"].abs().max())
+        bound = r_max / (1 - self.gamma)
+        train = [r for r in self.history if r["stage"] == "q_train"]
+        values = {k: v for k, v in final.items() if k.startswith("q_mean")}
+        if train:
+            values.update({f"train_{k}": v for k, v in train[-1].items() if k in ("q_mean", "target_value_mean", "actor_q_mean")})
+        values = {k: abs(float(v)) for k, v in values.items() if isinstance(v, (int, float)) and math.isfinite(v)}
+        largest = max(values.values(), default=None)
+        return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
+                "bound": bound, "factor": self.BLOW_UP_FACTOR,
+                "blow_up": largest is not None and largest > self.BLOW_UP_FACTOR * bound}
+
+    def _diverged_results(self, err: TrainingDiverged) -> dict:
+        """``results.json`` of a run stopped by divergence: valid JSON, ``"status": "diverged"`` and where."""
+        final = [r for r in self.history if r["stage"] == "q"]
+        results = {
+            "status": "diverged",
+            "env": self.cfg.env.name,
+            "algo": self.cfg.algo,
+            "seed": self.cfg.seed,
+            "diverged": {"stage": err.stage, "step": err.step, "figure": err.figure, "value": repr(err.value),
+                         "message": str(err), "checkpoint_step": err.checkpoint_step,
+                         "checkpoint_stage": None if self._checkpoint_state is None else self._checkpoint_state["stage"]},
+            "final": final[-1] if final else {},
+            "flags": ["diverged"],
+            "data_seconds": self.data_seconds,
+            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+        }
+        write_json(self.run_dir / "results.json", results)
+        write_json(self.run_dir / "history.json", self.history)
+        return json_safe(results)
 
     def results(self) -> dict:
         final = [r for r in self.history if r["stage"] == "q"]
-        if self.cfg.plots:
-            from torchrl_wbrm.training.plots import plot_run
-
-            plot_run(self.history, self.run_dir, title=f"{self.cfg.env.name}, seed {self.cfg.seed}")
         ratio_records = [r for r in self.history if r["stage"] == "ratio"]
         results = {
+            "status": "finished",
             "env": self.cfg.env.name,
             "algo": self.cfg.algo,
             "seed": self.cfg.seed,
@@ -480,8 +571,17 @@ class WBRMTrainer:
             best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
-        (self.run_dir / "results.json").write_text(json.dumps(results, indent=2, default=float))
-        (self.run_dir / "history.json").write_text(json.dumps(self.history, indent=2, default=float))
+        results["q_scale"] = self._q_scale(results["final"])
+        results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
+        results = json_safe(results)
+        # the figures are on disk before any plot is drawn: a failing plot cannot lose them
+        write_json(self.run_dir / "results.json", results)
+        write_json(self.run_dir / "history.json", self.history)
+        if self.cfg.plots:
+            from torchrl_wbrm.training.plots import plot_run
+
+            plot_run(self.history, self.run_dir, title=f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}",
+                     algo=self.cfg.algo)
         return results
 
     # ------------------------------------------------------------------ checkpoints
@@ -497,38 +597,35 @@ class WBRMTrainer:
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
         }
         if self.ratio_network is not None:
-            sd.update(
-                ratio_loss=self.ratio_loss.state_dict(),
-                ratio_optim=self.ratio_optim.state_dict(),
-                ratio_best=copy.deepcopy(self.ratio_best),
-            )
+            fitter = self.ratio_fitter.state_dict()
+            sd.update(ratio_loss=fitter["loss_module"], ratio_optim=fitter["optimizer"], ratio_best=fitter["best"],
+                      ratio_steps=fitter["num_steps"])
         return sd
 
     def save_checkpoint(self) -> Path:
+        """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
+        the checkpoint on disk is always the last finite one."""
         path = self.run_dir / CHECKPOINT
+        bad = non_finite_parameter(self.q_loss, self.ratio_loss if self.ratio_network is not None else None)
+        if bad is not None:
+            raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
         tmp = path.with_suffix(".tmp")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, path)
+        self._checkpoint_state = dict(self.state)
         return path
 
     def _load_checkpoint(self) -> None:
+        """Restore the checkpoint read (and whose config was checked) in ``__init__``."""
         path = self.run_dir / CHECKPOINT
-        if not path.is_file():
-            raise FileNotFoundError(f"Cannot resume: no {CHECKPOINT} in {self.run_dir}.")
-        sd = torch.load(path, weights_only=False)
+        sd = self._resume_sd
         if abs(sd["data_fingerprint"] - self.data_fingerprint) > 1e-6:
             raise ValueError(
                 f"Cannot resume from {path}: its data differ from this config's (env or seed changed?)."
             )
-        saved = dict(sd["config"])
-        now = OmegaConf.to_container(OmegaConf.structured(self.cfg))
-        for section in ("env", "ratio"):
-            if saved.get(section) != now.get(section):
-                raise ValueError(f"Cannot resume from {path}: its '{section}' settings differ from this config's.")
         self.state = sd["state"]
         self.history = sd["history"]
-        if saved.get("algo", "wbrm") != self.cfg.algo:
-            raise ValueError(f"Cannot resume from {path}: it ran algo={saved.get('algo')!r}, not {self.cfg.algo!r}.")
+        self._checkpoint_state = dict(self.state)
         self.q_loss.load_state_dict(sd["q_loss"])
         # checkpoints written before the algos refactor hold "value_optim" and "actor_optim"
         optimisers = sd.get("optimisers") or {"value": sd["value_optim"], "actor": sd["actor_optim"]}
@@ -538,9 +635,9 @@ class WBRMTrainer:
         for name, scheduler in self.schedulers.items():
             scheduler.load_state_dict(sd["schedulers"][name])
         if self.ratio_network is not None:
-            self.ratio_loss.load_state_dict(sd["ratio_loss"])
-            self.ratio_optim.load_state_dict(sd["ratio_optim"])
-            self.ratio_best = sd["ratio_best"]
+            self.ratio_fitter.load_state_dict({"loss_module": sd["ratio_loss"], "optimizer": sd["ratio_optim"],
+                                               "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
         if self.state["stage"] != "ratio":
             self._build_q_buffer()
         set_rng_state(sd["rng"])
+        self._resume_sd = None  # restored: free the copy
