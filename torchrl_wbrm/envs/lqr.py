@@ -33,9 +33,7 @@ from typing import Sequence
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import EnvBase
 
 from torchrl_wbrm.envs._batched import BatchedEpisodicEnv
 
@@ -81,6 +79,18 @@ class LQRConfig:
     action_bound: float = 5.0
 
     def __post_init__(self):
+        for name in ("F", "G", "R", "S"):
+            try:
+                matrix = np.asarray(getattr(self, name), dtype=np.float64)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"LQRConfig.{name} must be a matrix of numbers, got {getattr(self, name)!r}.") from err
+            if not np.isfinite(matrix).all():
+                raise ValueError(f"LQRConfig.{name} must be finite, got {matrix.tolist()}.")
+        for name in ("transition_noise_std", "reward_offset", "reward_noise_std", "gamma", "initial_std", "action_bound"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"LQRConfig.{name} must be finite, got {getattr(self, name)!r}.")
+        if self.reward_clip is not None and not math.isfinite(self.reward_clip):
+            raise ValueError(f"LQRConfig.reward_clip must be finite or None, got {self.reward_clip!r}.")
         F, G, R, S = (np.asarray(m, dtype=np.float64) for m in (self.F, self.G, self.R, self.S))
         if F.ndim != 2 or F.shape[0] != F.shape[1]:
             raise ValueError(f"LQRConfig.F must be a square matrix, got shape {F.shape}.")
@@ -258,23 +268,33 @@ class LQREnv(BatchedEpisodicEnv):
         obs = self.config.initial_std * self._randn(*self.batch_size, d)
         return self._start_episodes(tensordict, obs)
 
+    def _check_action(self, a: torch.Tensor | None) -> None:
+        """The action of a step: present, of shape ``(*batch, m)``, of the env's dtype and (on CPU) finite."""
+        expected = (*self.batch_size, self.config.action_dim)
+        if a is None:
+            raise KeyError(f"LQREnv.step needs an 'action' entry of shape {expected}.")
+        if tuple(a.shape) != expected:
+            raise ValueError(f"LQREnv.step: 'action' has shape {tuple(a.shape)}, expected {expected} (batch {tuple(self.batch_size)}, "
+                             f"action dim {self.config.action_dim}).")
+        if a.dtype != self._dtype:
+            raise TypeError(f"LQREnv.step: 'action' has dtype {a.dtype}, expected {self._dtype} (the env's dtype).")
+        if a.device.type == "cpu" and not bool(torch.isfinite(a).all()):
+            raise ValueError(f"LQREnv.step: 'action' holds {int((~torch.isfinite(a)).sum())} non-finite value(s) (NaN or inf).")
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         x = tensordict.get("observation")
-        a = tensordict.get("action")
+        a = tensordict.get("action", None)
+        self._check_action(a)
         cfg = self.config
-        buffers = self._buffers  # (one dict lookup instead of four nn.Module.__getattr__ calls)
-        S, R, F, G = buffers["_S"], buffers["_R"], buffers["_F"], buffers["_G"]
-        cost = ((x @ S) * x).sum(-1, keepdim=True) + ((a @ R) * a).sum(-1, keepdim=True)
+        cost = ((x @ self._S) * x).sum(-1, keepdim=True) + ((a @ self._R) * a).sum(-1, keepdim=True)
         reward = cfg.reward_offset - cost + cfg.reward_noise_std * self._randn(*self.batch_size, 1)
         if cfg.reward_clip is not None:
             reward = reward.clamp_min(cfg.reward_clip)
-        next_x = x @ F.T + a @ G.T + cfg.transition_noise_std * self._randn(*x.shape)
-        step_count = buffers["_step_count"] + 1
-        buffers["_step_count"] = step_count  # the registered buffer, replaced without nn.Module.__setattr__
-        truncated = step_count >= cfg.horizon
+        next_x = x @ self._F.T + a @ self._G.T + cfg.transition_noise_std * self._randn(*x.shape)
+        self._step_count = self._step_count + 1
+        truncated = self._step_count >= cfg.horizon
         terminated = torch.zeros_like(truncated)
-        # every entry is built here with the batch shape and device of the specs: no validation needed
-        return TensorDict._new_unsafe(
+        return TensorDict(
             {
                 "observation": next_x,
                 "reward": reward,
@@ -285,49 +305,6 @@ class LQREnv(BatchedEpisodicEnv):
             batch_size=self.batch_size,
             device=self.device,
         )
-
-    def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
-        """torchrl's :meth:`~torchrl.envs.EnvBase.rollout`; the common call (a TensorDict policy, a fresh reset,
-        stop when done) takes a shorter path with the same result.
-
-        ``env.rollout(n, policy)`` spends most of a small batch's time in ``EnvBase.step``'s generic bookkeeping
-        (shape checks, done completion, ``"next"`` handling). On this env every step's output is built by
-        :meth:`_step` with the specs' shapes, and after a full reset every system is truncated at the same step
-        (the system never terminates), so the loop can call :meth:`_step` directly and stop at
-        ``min(max_steps, horizon)`` without reading the done flags (no host sync). The policy, ``step_mdp``, the
-        stacking and the generator draws are torchrl's own, in the same order: the output is identical (tested).
-        Any other argument (``break_when_any_done=False``, ``auto_reset=False``, a ``tensordict``, a callback,
-        ``set_truncated``, an ``out``, a non-TensorDict policy, ...) runs torchrl's loop.
-        """
-        fast = (
-            isinstance(policy, TensorDictModuleBase)
-            and callback is None
-            and set(kwargs) <= {"break_when_any_done", "break_when_all_done", "return_contiguous", "auto_reset"}
-            and kwargs.get("break_when_any_done", None) in (None, True)
-            and not kwargs.get("break_when_all_done", None)
-            and kwargs.get("return_contiguous", False) in (None, True, False)
-            and kwargs.get("auto_reset", True) is True
-            and not self.run_type_checks
-            and self._post_step_mdp_hooks is None
-            and not self._has_dynamic_specs
-            and type(self).step is EnvBase.step
-            and type(self)._step_mdp is EnvBase._step_mdp
-            and max_steps >= 1
-        )
-        if not fast:
-            return super().rollout(max_steps, policy, callback, **kwargs)
-        tensordict = self.reset()
-        steps = min(int(max_steps), self.config.horizon)
-        tensordicts = []
-        for i in range(steps):
-            tensordict.update(policy(tensordict))
-            tensordict.set("next", self._step(tensordict))
-            next_td = self._step_mdp(tensordict)
-            tensordicts.append(tensordict.copy())
-            tensordict = next_td
-        out = torch.stack(tensordicts, len(self.batch_size))
-        out.refine_names(..., "time")
-        return out
 
     # ------------------------------------------------------------------ exact solution
     def riccati(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -452,8 +429,9 @@ class LQREnv(BatchedEpisodicEnv):
         lam = lam[lam > 1e-12 * max(lam.max(), 1e-300)]
         if len(lam) > 2:
             raise NotImplementedError(
-                f"The exact clipped return needs the cost of (x_t, a_t) to have rank <= 2, got rank {len(lam)}; "
-                "use clipped=False for the unclipped figure."
+                f"The exact clipped return needs the cost of (x_t, a_t) to have rank <= 2, got rank {len(lam)} (a state "
+                "dimension above 2): use clipped=False for the unclipped figure, or LQRConfig(reward_clip=None) "
+                "(recipe: env.lqr.reward_clip=null) to train and score on the unclipped reward."
             )
         lam = np.pad(lam, (0, 2 - len(lam)))
         return _expected_clip_excess(np.diag(lam), cfg.reward_offset, cfg.reward_noise_std)

@@ -61,3 +61,44 @@ def check_sign(value: torch.Tensor, key: NestedKey, *, strictly_positive: bool) 
     message = f"Entry {key!r} must be finite and {expected}."
     if not bool(ok):
         raise ValueError(f"{message} Got min {value.min().item():.4g}, max {value.max().item():.4g}.")
+
+
+def check_not_empty(batch_size: torch.Size, what: str) -> None:
+    """A ValueError for an empty batch (a mean over no samples is NaN)."""
+    if batch_size.numel() == 0:
+        raise ValueError(f"The {what} batch is empty (batch size {tuple(batch_size)}): a loss needs at least one sample.")
+
+
+def check_finite(value: torch.Tensor, key: NestedKey) -> None:
+    """A ValueError naming ``key`` if a floating entry holds NaN or ±inf (CPU tensors only, as :func:`check_sign`)."""
+    if value.device.type != "cpu" or not value.is_floating_point():
+        return
+    finite = torch.isfinite(value)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        raise ValueError(f"Entry {key!r} holds {bad} non-finite value(s) (NaN or inf) of {value.numel()}.")
+
+
+def as_bool_flag(value: torch.Tensor, key: NestedKey) -> torch.Tensor:
+    """An episode-end flag as a bool tensor: bool as it is, any integer dtype holding only 0 and 1 converted
+    (``~`` on an int64 1 is −2, on a uint8 0 is 255: torchrl's estimators need bools); a float flag or an integer
+    other than 0/1 is refused, naming ``key``."""
+    if value.dtype == torch.bool:
+        return value
+    if value.is_floating_point() or value.is_complex():
+        raise TypeError(f"Entry {key!r} is an episode-end flag of dtype {value.dtype}; pass bool (or integer 0/1).")
+    if value.device.type == "cpu" and value.numel() and not bool(((value == 0) | (value == 1)).all()):
+        raise ValueError(
+            f"Entry {key!r} is an episode-end flag of dtype {value.dtype} with values other than 0 and 1 "
+            f"(min {int(value.min())}, max {int(value.max())})."
+        )
+    return value != 0
+
+
+def check_same_features(a: torch.Tensor, b: torch.Tensor, key_a, key_b, batch_a: torch.Size, batch_b: torch.Size) -> None:
+    """A ValueError naming both keys and both shapes if two entries' per-sample shapes differ."""
+    if a.shape[len(batch_a):] != b.shape[len(batch_b):]:
+        raise ValueError(
+            f"Entry {key_a!r} has shape {tuple(a.shape)} and {key_b!r} has shape {tuple(b.shape)}: their per-sample "
+            f"shapes {tuple(a.shape[len(batch_a):])} and {tuple(b.shape[len(batch_b):])} must match."
+        )

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import torch
@@ -10,8 +11,15 @@ from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from torchrl_wbrm.objectives._fast import FunctionalCall
-from torchrl_wbrm.objectives._utils import check_reduction, check_sign, get_entry, reduce_batch
+from torchrl_wbrm.objectives._utils import (
+    check_finite,
+    check_not_empty,
+    check_reduction,
+    check_same_features,
+    check_sign,
+    get_entry,
+    reduce_batch,
+)
 
 __all__ = ["RobustDensityRatioLoss", "basu_power_divergence", "power_divergence_integrands"]
 
@@ -182,9 +190,6 @@ class RobustDensityRatioLoss(LossModule):
     ratio_network: TensorDictModule
     ratio_network_params: TensorDictParams
     target_ratio_network_params: TensorDictParams
-    #: Call a plain ratio network on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through a TensorDict
-    #: and ``to_module``; the same computation (tested). ``False`` on an instance forces the TensorDict path.
-    fast_path: bool = True
 
     def __init__(
         self,
@@ -197,8 +202,10 @@ class RobustDensityRatioLoss(LossModule):
         reduction: str | None = None,
     ) -> None:
         reduction = check_reduction(reduction)
-        if alpha != "kl" and not (isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and alpha > 0):
-            raise ValueError(f"alpha must be a number > 0 or 'kl' (the α → 0 limit), got {alpha!r}.")
+        if alpha != "kl" and not (
+            isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and alpha > 0 and math.isfinite(alpha)
+        ):
+            raise ValueError(f"alpha must be a finite number > 0 or 'kl' (the α → 0 limit), got {alpha!r}.")
         if not normalisation_coefficient >= 0:
             raise ValueError(f"normalisation_coefficient must be >= 0, got {normalisation_coefficient!r}.")
         if non_negative_correction is not None and not non_negative_correction > 0:
@@ -236,30 +243,21 @@ class RobustDensityRatioLoss(LossModule):
             for key in self.ratio_network.in_keys
         ]
 
-    def _fast(self) -> FunctionalCall | None:
-        """The tensor call of the ratio network, or ``None`` where it needs the TensorDict path."""
-        cache = self.__dict__.get("_fast_cache")
-        if cache is None or cache[0] is not self.ratio_network or cache[2] != self.fast_path:
-            call = None
-            if self.fast_path and list(self.ratio_network.out_keys) == [self.tensor_keys.density_ratio]:
-                call = FunctionalCall.build(self.ratio_network, self.ratio_network_params)
-            cache = self.__dict__["_fast_cache"] = (self.ratio_network, call, self.fast_path)
-        return cache[1]
-
     def density_ratio(self, samples: TensorDictBase, name: str) -> torch.Tensor:
         """ŵ on one set of samples (``name`` is ``"behaviour"`` or ``"expert"`` and only used in error messages)."""
         key = self.tensor_keys.density_ratio
-        tensors = [get_entry(samples, k, f"input of the ratio network, in the {name!r} samples")
-                   for k in self.ratio_network.in_keys]
-        fast = self._fast()
-        if fast is not None:
-            w = fast(self.ratio_network_params, *tensors)
-        else:
-            inputs = TensorDict(dict(zip(self.ratio_network.in_keys, tensors)), batch_size=samples.batch_size,
-                                device=samples.device)
-            with self.ratio_network_params.to_module(self.ratio_network, preserve_module_state=False):
-                outputs = self.ratio_network(inputs)
-            w = get_entry(outputs, key, f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}")
+        inputs = TensorDict(
+            {k: get_entry(samples, k, f"input of the ratio network, in the {name!r} samples")
+             for k in self.ratio_network.in_keys},
+            batch_size=samples.batch_size,
+            device=samples.device,
+        )
+        check_not_empty(samples.batch_size, f"{name!r}")
+        for k in self.ratio_network.in_keys:
+            check_finite(inputs.get(k), (name, *(k if isinstance(k, tuple) else (k,))))
+        with self.ratio_network_params.to_module(self.ratio_network, preserve_module_state=False):
+            outputs = self.ratio_network(inputs)
+        w = get_entry(outputs, key, f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}")
         if w.shape not in (samples.batch_size, (*samples.batch_size, 1)):
             raise ValueError(
                 f"The ratio network wrote {key!r} with shape {tuple(w.shape)} on {name!r} samples of batch size "
@@ -277,6 +275,12 @@ class RobustDensityRatioLoss(LossModule):
                 f"reduction='none' pairs behaviour and expert samples, so their batch sizes must match; got "
                 f"{tuple(behaviour.batch_size)} and {tuple(expert.batch_size)}."
             )
+        for key in self.ratio_network.in_keys:  # both sides must describe the same (x, a)
+            prefix = key if isinstance(key, tuple) else (key,)
+            b_value, e_value = behaviour.get(key, None), expert.get(key, None)
+            if b_value is not None and e_value is not None:
+                check_same_features(b_value, e_value, (self.tensor_keys.behaviour, *prefix),
+                                    (self.tensor_keys.expert, *prefix), behaviour.batch_size, expert.batch_size)
         w_behaviour = self.density_ratio(behaviour, "behaviour")
         w_expert = self.density_ratio(expert, "expert")
         loss = basu_power_divergence(
