@@ -33,7 +33,9 @@ from typing import Sequence
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase
 
 from torchrl_wbrm.envs._batched import BatchedEpisodicEnv
 
@@ -286,15 +288,19 @@ class LQREnv(BatchedEpisodicEnv):
         a = tensordict.get("action", None)
         self._check_action(a)
         cfg = self.config
-        cost = ((x @ self._S) * x).sum(-1, keepdim=True) + ((a @ self._R) * a).sum(-1, keepdim=True)
+        buffers = self._buffers  # (one dict lookup instead of four nn.Module.__getattr__ calls)
+        S, R, F, G = buffers["_S"], buffers["_R"], buffers["_F"], buffers["_G"]
+        cost = ((x @ S) * x).sum(-1, keepdim=True) + ((a @ R) * a).sum(-1, keepdim=True)
         reward = cfg.reward_offset - cost + cfg.reward_noise_std * self._randn(*self.batch_size, 1)
         if cfg.reward_clip is not None:
             reward = reward.clamp_min(cfg.reward_clip)
-        next_x = x @ self._F.T + a @ self._G.T + cfg.transition_noise_std * self._randn(*x.shape)
-        self._step_count = self._step_count + 1
-        truncated = self._step_count >= cfg.horizon
+        next_x = x @ F.T + a @ G.T + cfg.transition_noise_std * self._randn(*x.shape)
+        step_count = buffers["_step_count"] + 1
+        buffers["_step_count"] = step_count  # the registered buffer, replaced without nn.Module.__setattr__
+        truncated = step_count >= cfg.horizon
         terminated = torch.zeros_like(truncated)
-        return TensorDict(
+        # every entry is built here with the batch shape and device of the specs: no validation needed
+        return TensorDict._new_unsafe(
             {
                 "observation": next_x,
                 "reward": reward,
@@ -305,6 +311,49 @@ class LQREnv(BatchedEpisodicEnv):
             batch_size=self.batch_size,
             device=self.device,
         )
+
+    def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
+        """torchrl's :meth:`~torchrl.envs.EnvBase.rollout`; the common call (a TensorDict policy, a fresh reset,
+        stop when done) takes a shorter path with the same result.
+
+        ``env.rollout(n, policy)`` spends most of a small batch's time in ``EnvBase.step``'s generic bookkeeping
+        (shape checks, done completion, ``"next"`` handling). On this env every step's output is built by
+        :meth:`_step` with the specs' shapes, and after a full reset every system is truncated at the same step
+        (the system never terminates), so the loop can call :meth:`_step` directly and stop at
+        ``min(max_steps, horizon)`` without reading the done flags (no host sync). The policy, ``step_mdp``, the
+        stacking and the generator draws are torchrl's own, in the same order: the output is identical (tested).
+        Any other argument (``break_when_any_done=False``, ``auto_reset=False``, a ``tensordict``, a callback,
+        ``set_truncated``, an ``out``, a non-TensorDict policy, ...) runs torchrl's loop.
+        """
+        fast = (
+            isinstance(policy, TensorDictModuleBase)
+            and callback is None
+            and set(kwargs) <= {"break_when_any_done", "break_when_all_done", "return_contiguous", "auto_reset"}
+            and kwargs.get("break_when_any_done", None) in (None, True)
+            and not kwargs.get("break_when_all_done", None)
+            and kwargs.get("return_contiguous", False) in (None, True, False)
+            and kwargs.get("auto_reset", True) is True
+            and not self.run_type_checks
+            and self._post_step_mdp_hooks is None
+            and not self._has_dynamic_specs
+            and type(self).step is EnvBase.step
+            and type(self)._step_mdp is EnvBase._step_mdp
+            and max_steps >= 1
+        )
+        if not fast:
+            return super().rollout(max_steps, policy, callback, **kwargs)
+        tensordict = self.reset()
+        steps = min(int(max_steps), self.config.horizon)
+        tensordicts = []
+        for i in range(steps):
+            tensordict.update(policy(tensordict))
+            tensordict.set("next", self._step(tensordict))
+            next_td = self._step_mdp(tensordict)
+            tensordicts.append(tensordict.copy())
+            tensordict = next_td
+        out = torch.stack(tensordicts, len(self.batch_size))
+        out.refine_names(..., "time")
+        return out
 
     # ------------------------------------------------------------------ exact solution
     def riccati(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -11,6 +11,7 @@ from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
+from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import (
     check_finite,
     check_not_empty,
@@ -190,6 +191,9 @@ class RobustDensityRatioLoss(LossModule):
     ratio_network: TensorDictModule
     ratio_network_params: TensorDictParams
     target_ratio_network_params: TensorDictParams
+    #: Call a plain ratio network on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through a TensorDict
+    #: and ``to_module``; the same computation (tested). ``False`` on an instance forces the TensorDict path.
+    fast_path: bool = True
 
     def __init__(
         self,
@@ -243,21 +247,33 @@ class RobustDensityRatioLoss(LossModule):
             for key in self.ratio_network.in_keys
         ]
 
+    def _fast(self) -> FunctionalCall | None:
+        """The tensor call of the ratio network, or ``None`` where it needs the TensorDict path."""
+        cache = self.__dict__.get("_fast_cache")
+        if cache is None or cache[0] is not self.ratio_network or cache[2] != self.fast_path:
+            call = None
+            if self.fast_path and list(self.ratio_network.out_keys) == [self.tensor_keys.density_ratio]:
+                call = FunctionalCall.build(self.ratio_network, self.ratio_network_params)
+            cache = self.__dict__["_fast_cache"] = (self.ratio_network, call, self.fast_path)
+        return cache[1]
+
     def density_ratio(self, samples: TensorDictBase, name: str) -> torch.Tensor:
         """ŵ on one set of samples (``name`` is ``"behaviour"`` or ``"expert"`` and only used in error messages)."""
         key = self.tensor_keys.density_ratio
-        inputs = TensorDict(
-            {k: get_entry(samples, k, f"input of the ratio network, in the {name!r} samples")
-             for k in self.ratio_network.in_keys},
-            batch_size=samples.batch_size,
-            device=samples.device,
-        )
+        tensors = [get_entry(samples, k, f"input of the ratio network, in the {name!r} samples")
+                   for k in self.ratio_network.in_keys]
         check_not_empty(samples.batch_size, f"{name!r}")
-        for k in self.ratio_network.in_keys:
-            check_finite(inputs.get(k), (name, *(k if isinstance(k, tuple) else (k,))))
-        with self.ratio_network_params.to_module(self.ratio_network, preserve_module_state=False):
-            outputs = self.ratio_network(inputs)
-        w = get_entry(outputs, key, f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}")
+        for k, t in zip(self.ratio_network.in_keys, tensors):
+            check_finite(t, (name, *(k if isinstance(k, tuple) else (k,))))
+        fast = self._fast()
+        if fast is not None:
+            w = fast(self.ratio_network_params, *tensors)
+        else:
+            inputs = TensorDict(dict(zip(self.ratio_network.in_keys, tensors)), batch_size=samples.batch_size,
+                                device=samples.device)
+            with self.ratio_network_params.to_module(self.ratio_network, preserve_module_state=False):
+                outputs = self.ratio_network(inputs)
+            w = get_entry(outputs, key, f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}")
         if w.shape not in (samples.batch_size, (*samples.batch_size, 1)):
             raise ValueError(
                 f"The ratio network wrote {key!r} with shape {tuple(w.shape)} on {name!r} samples of batch size "

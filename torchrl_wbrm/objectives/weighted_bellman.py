@@ -12,14 +12,17 @@ from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.modules import QValueActor
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
-from torchrl.objectives.value import ValueEstimatorBase
+from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
+from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
     GreedyDiscreteMaximiser,
     SampledActionMaximiser,
+    uniform_actions,
 )
+from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import (
     as_bool_flag,
     check_finite,
@@ -226,6 +229,9 @@ class WeightedBellmanLoss(LossModule):
     default_keys = _AcceptedKeys
     default_value_estimator = ValueEstimators.TD0
     SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.TD0,)
+    #: Call plain networks on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through TensorDicts and
+    #: ``to_module``; the same computation (tested). Set ``False`` on an instance to force the TensorDict path.
+    fast_path: bool = True
 
     value_network: TensorDictModule
     value_network_params: TensorDictParams
@@ -390,6 +396,51 @@ class WeightedBellmanLoss(LossModule):
         self._out_keys = values
 
     # ---------------------------------------------------------------- pieces
+    def _fast(self) -> tuple[FunctionalCall, FunctionalCall | None] | None:
+        """``(Q call, actor call)`` for the tensor path, or ``None`` where the TensorDict path is needed (a discrete
+        head, a custom maximiser, a network that is not a plain TensorDictModule, other output keys)."""
+        actor = self.actor_network if self.has_actor else None
+        cache = self.__dict__.get("_fast_cache")
+        if cache is not None and cache[0] is self.value_network and cache[1] is actor and cache[3] == self.fast_path:
+            return cache[2]
+        plan = None
+        if (
+            self.fast_path
+            and not self.discrete
+            and type(self.maximiser) in (ActorMaximiser, SampledActionMaximiser)
+            and list(self.value_network.out_keys) == [self.tensor_keys.state_action_value]
+            and (actor is None or list(actor.out_keys) == [self.tensor_keys.action])
+        ):
+            value_call = FunctionalCall.build(self.value_network, self.value_network_params)
+            actor_call = None if actor is None else FunctionalCall.build(actor, self.actor_network_params)
+            if value_call is not None and (actor is None or actor_call is not None):
+                plan = (value_call, actor_call)
+        self.__dict__["_fast_cache"] = (self.value_network, actor, plan, self.fast_path)
+        return plan
+
+    def _td0_target(self, tensordict: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
+        """``r + γ (1 − terminated) · next_value`` as the TD(0) estimator computes it (its keys, its γ), without the
+        TensorDict copy; other estimators (or options) go through ``value_estimate``."""
+        estimator = self.value_estimator
+        keys = getattr(estimator, "tensor_keys", None)
+        if (
+            not self.fast_path
+            or type(estimator) is not TD0Estimator
+            or getattr(estimator, "average_rewards", True)
+            or tensordict.get(keys.steps_to_next_obs, None) is not None
+        ):
+            reward = tensordict.get(_next(self.tensor_keys.reward))
+            return estimator.value_estimate(tensordict.copy(), next_value=next_value.reshape(reward.shape))
+        reward = tensordict.get(("next", keys.reward))
+        if estimator.gamma.device != reward.device:
+            estimator.gamma = estimator.gamma.to(reward.device)
+        done = tensordict.get(("next", keys.done))
+        terminated = tensordict.get(("next", keys.terminated), default=done)
+        return td0_return_estimate(
+            gamma=estimator.gamma, next_state_value=next_value.reshape(reward.shape), reward=reward,
+            terminated=terminated,
+        )
+
     def _inputs(self, tensordict: TensorDictBase, keys, why: str) -> TensorDict:
         """A new TensorDict holding ``keys`` of ``tensordict`` (so the input is never written to)."""
         return TensorDict(
@@ -424,6 +475,11 @@ class WeightedBellmanLoss(LossModule):
 
     def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Q(x, a) at the data's actions, shape ``[*B]``, with the online parameters (differentiable)."""
+        fast = self._fast()
+        if fast is not None:
+            tensors = [get_entry(tensordict, key, "an input of the value network") for key in self.value_network.in_keys]
+            key = self.tensor_keys.state_action_value
+            return per_sample(fast[0](self.value_network_params, *tensors), tensordict.batch_size, key)
         keys = self._observation_keys if self.discrete else self.value_network.in_keys
         inputs = self._inputs(tensordict, keys, "an input of the value network")
         with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
@@ -453,6 +509,9 @@ class WeightedBellmanLoss(LossModule):
     def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad."""
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
+        fast = self._fast()
+        if fast is not None:
+            return self._fast_next_state_value(next_td, fast)
         next_inputs = self._inputs(next_td, self._observation_keys, "a next-state input of the value network")
         actor_action = None
         if self.has_actor:
@@ -468,6 +527,40 @@ class WeightedBellmanLoss(LossModule):
                     value_key=self.tensor_keys.action_value if self.discrete else self.tensor_keys.state_action_value,
                     actor_action=actor_action,
                 )
+
+    def _fast_next_state_value(self, next_td: TensorDictBase, fast) -> torch.Tensor:
+        """:meth:`next_state_value` on tensors: the same candidates (μ'(x'), or the uniform draws then μ'(x')), the
+        same ``[K, *B]`` evaluation of Q and the max over K."""
+        value_call, actor_call = fast
+        action_key = self.tensor_keys.action
+        batch = next_td.batch_size
+        next_inputs = {key: get_entry(next_td, key, "a next-state input of the value network")
+                       for key in self._observation_keys}
+        actor_action = None
+        if actor_call is not None:
+            with torch.no_grad():  # the value loss never trains the actor
+                actor_in = [get_entry(next_td, key, "an input of the actor") for key in self.actor_network.in_keys]
+                actor_action = actor_call(self.target_actor_network_params, *actor_in)
+        params = self.target_value_network_params if self.delay_value else self.value_network_params
+        with torch.no_grad() if self.delay_value else nullcontext():
+            if isinstance(self.maximiser, SampledActionMaximiser):
+                m = self.maximiser
+                candidates = uniform_actions(m.low, m.high, m.num_samples, batch)
+                if actor_action is not None:
+                    candidates = torch.cat([candidates, actor_action.unsqueeze(0)], 0)
+            else:
+                if actor_action is None:
+                    raise ValueError("ActorMaximiser needs actor_action = μ(x); build the loss with an actor_network.")
+                candidates = actor_action.unsqueeze(0)
+            k = candidates.shape[0]
+            tensors = []
+            for key in self.value_network.in_keys:
+                if key == action_key:
+                    tensors.append(candidates)
+                else:
+                    tensors.append(next_inputs[key].expand(k, *next_inputs[key].shape))
+            values = value_call(params, *tensors).squeeze(-1)  # [K, *B]
+            return values.max(0).values
 
     # ---------------------------------------------------------------- input checks
     def _checked_inputs(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -516,12 +609,9 @@ class WeightedBellmanLoss(LossModule):
         Shared by :meth:`value_loss` and by subclasses (:class:`~torchrl_wbrm.objectives.MABOLoss`).
         """
         tensordict = self._checked_inputs(tensordict)
-        reward = tensordict.get(_next(self.tensor_keys.reward))
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
-        target_value = self.value_estimator.value_estimate(
-            tensordict.copy(), next_value=next_value.reshape(reward.shape)
-        )
+        target_value = self._td0_target(tensordict, next_value)
         return q_value, per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -559,13 +649,22 @@ class WeightedBellmanLoss(LossModule):
         """
         if not self.has_actor:
             raise ValueError("actor_loss needs an actor_network; this loss was built without one.")
-        mu = self._actor_action(tensordict, self.actor_network_params)
-        q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
-        q_inputs.set(self.tensor_keys.action, mu)
-        with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
-            q_outputs = self.value_network(q_inputs)
         key = self.tensor_keys.state_action_value
-        q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
+        fast = self._fast()
+        if fast is not None:
+            value_call, actor_call = fast
+            actor_in = [get_entry(tensordict, k, "an input of the actor") for k in self.actor_network.in_keys]
+            mu = actor_call(self.actor_network_params, *actor_in)
+            q_in = [mu if k == self.tensor_keys.action else get_entry(tensordict, k, "an input of the value network")
+                    for k in self.value_network.in_keys]
+            q_actor = per_sample(value_call(self.value_network_params, *q_in, detach=True), tensordict.batch_size, key)
+        else:
+            mu = self._actor_action(tensordict, self.actor_network_params)
+            q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
+            q_inputs.set(self.tensor_keys.action, mu)
+            with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
+                q_outputs = self.value_network(q_inputs)
+            q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
         per_sample_loss = -q_actor
         diagnostics = {"actor_q_mean": q_actor.detach().mean()}
         if self.bc_alpha is not None:
