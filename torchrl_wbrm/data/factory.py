@@ -12,12 +12,13 @@ from pathlib import Path
 
 from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
+from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
 from torchrl_wbrm.envs import LQRConfig
 
 __all__ = ["EnvConfig", "ENV_KINDS", "make_offline_datasets", "cached_offline_datasets"]
 
-ENV_KINDS = ("lqr", "mountain_car")
+ENV_KINDS = ("lqr", "mountain_car", "minari")
 
 
 @dataclass
@@ -26,10 +27,11 @@ class EnvConfig:
 
     Attributes:
         name: a label for logs and tables (``lqr_exp1``, ``mountain_car``, ...).
-        kind: ``"lqr"`` or ``"mountain_car"``.
+        kind: ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two local Minari datasets, ``minari``).
         lqr: the LQR system (any F, G, R; the paper's three are ``configs/env/lqr_exp{1,2,3}.yaml``).
         lqr_data: LQR dataset sizes and policies.
         mountain_car_data: MountainCar dataset sizes and policies.
+        minari: the expert and behaviour Minari datasets and the evaluation env (``kind="minari"``).
     """
 
     name: str = "lqr_exp1"
@@ -37,6 +39,7 @@ class EnvConfig:
     lqr: LQRConfig = field(default_factory=LQRConfig)
     lqr_data: LQRDataConfig = field(default_factory=LQRDataConfig)
     mountain_car_data: MountainCarDataConfig = field(default_factory=MountainCarDataConfig)
+    minari: MinariDataConfig = field(default_factory=MinariDataConfig)
 
     def __post_init__(self):
         if self.kind not in ENV_KINDS:
@@ -65,6 +68,9 @@ def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", s
             storage=storage,
             scratch_dir=scratch_dir,
         )
+    if env.kind == "minari":  # read from disk, never downloaded
+        return make_minari_datasets(_to_dataclass(MinariDataConfig, env.minari), seed=seed, storage=storage,
+                                    scratch_dir=scratch_dir)
     return make_mountain_car_datasets(
         _to_dataclass(MountainCarDataConfig, env.mountain_car_data), seed=seed, storage=storage, scratch_dir=scratch_dir
     )
@@ -107,6 +113,8 @@ def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.Pa
     private folder and renames it into place; a loser loads the winner's copy (same config, same seed).
     """
     env = _to_dataclass(EnvConfig, env)
+    if env.kind == "minari":  # already on disk, verified by Minari's reader: no second copy
+        return make_offline_datasets(env, seed=seed)
     request = json.loads(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str))
     key = hashlib.sha1(json.dumps(request, sort_keys=True).encode()).hexdigest()
     target = Path(cache_dir) / f"{env.name}_seed{seed}_{key[:12]}"

@@ -119,6 +119,8 @@ class QConfig:
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations.
+        compile: compile the value and actor losses with ``torch.compile`` (wbrm, brm, fqi; the inductor cache goes
+            to ``<run dir>/torch_compile_cache``, the compile time to ``results.json``'s ``compile_seconds``).
     """
 
     residual: str = "squared"
@@ -149,6 +151,7 @@ class QConfig:
     init_bias: bool = True
     holdout_fraction: float = 0.1
     eval_every: int = 500
+    compile: bool = False
 
 
 @dataclass
@@ -177,12 +180,15 @@ class LoggerConfig:
         project: wandb project.
         mode: wandb mode, ``"offline"`` unless a user asks for ``"online"``.
         log_every: training steps between scalar logs.
+        group: wandb group (``None``: the Hydra sweep's folder name in a multirun, else none); runs of one sweep
+            or study share it.
     """
 
     backend: str = "csv"
     project: str = "torchrl_wbrm"
     mode: str = "offline"
     log_every: int = 50
+    group: Optional[str] = None
 
 
 @dataclass
@@ -306,6 +312,7 @@ class WBRMConfig:
         overwrite: let a new run replace a run directory that already holds a checkpoint or results (refused
             otherwise).
         plots: write PNG plots.
+        verbose: show the libraries' INFO logging (torchrl's storage lines and the like), silenced otherwise.
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -323,6 +330,7 @@ class WBRMConfig:
     resume: Optional[str] = None
     overwrite: bool = False
     plots: bool = True
+    verbose: bool = False
 
 
 @dataclass

@@ -35,6 +35,10 @@ def summarise(results: dict) -> str:
             )
     elif "return" in f:
         lines.append(f"return {_n(f['return'], '.2f')} ± {_n(f.get('return_ci'), '.2f')} over the evaluation episodes")
+        data = results.get("data", {})
+        if "behaviour_mean_return" in data or "expert_mean_return" in data:  # the datasets' own, beside it
+            lines.append(f"datasets' mean episode returns: behaviour {_n(data.get('behaviour_mean_return'), '.2f')}  "
+                         f"expert {_n(data.get('expert_mean_return'), '.2f')}")
     if w:
         ess_fraction = w.get("ess_fraction")
         lines.append(

@@ -39,7 +39,7 @@ from torchrl_wbrm.data import (
     make_offline_datasets,
     make_replay_buffer,
 )
-from torchrl_wbrm.data.datasets import PairedSampler, split_by_episode
+from torchrl_wbrm.data.datasets import split_by_episode
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
 from torchrl_wbrm.modules import DensityRatioNetwork
@@ -53,6 +53,7 @@ from torchrl_wbrm.policies import (
 )
 from torchrl_wbrm.training.algos import Algo, AlgoContext, adam_options, build_algo
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.logging import configure_console, log_run_summary
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 from torchrl_wbrm.training.guards import (
     RunInterrupted,
@@ -132,6 +133,7 @@ class WBRMTrainer:
         self.logger = logger
         self.progress = progress
         self.device = torch.device(self.cfg.device)
+        configure_console(self.cfg.verbose)  # library INFO chatter (torchrl's storage lines) only with verbose=true
         if self.cfg.threads:
             torch.set_num_threads(self.cfg.threads)
         set_seed(self.cfg.seed)
@@ -167,6 +169,11 @@ class WBRMTrainer:
             bound = self.lqr_config.action_bound
             self.action_spec = Bounded(-bound, bound, (self.action_dim,))
             self.gamma = self.cfg.q.gamma or self.lqr_config.gamma
+        elif self.cfg.env.kind == "minari":  # the dataset's action box (a Discrete action: its one-hot [0, 1]^n)
+            meta = self.datasets.metadata
+            self.action_spec = Bounded(torch.tensor(meta["action_low"]), torch.tensor(meta["action_high"]),
+                                       (self.action_dim,))
+            self.gamma = self.cfg.q.gamma or 0.99
         else:
             self.action_spec = Bounded(-1.0, 1.0, (self.action_dim,))
             self.gamma = self.cfg.q.gamma or 0.99
@@ -204,7 +211,7 @@ class WBRMTrainer:
             optimizer=optimiser, grad_clip=rc.grad_clip, holdout_fraction=rc.holdout_fraction,
             generator=torch.Generator().manual_seed(self.cfg.seed + 17), patience=rc.patience, device=self.device,
         )
-        # the fitter's paired batches (PairedSampler's draws), gathered straight into preallocated tensors on the device
+        # the fitter's paired batches, gathered straight into preallocated tensors on the device
         self.ratio_batches = PairedBatches(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
                                            rc.batch_size, device=self.device)
         self.ratio_fitter.sampler = self.ratio_batches
@@ -251,6 +258,8 @@ class WBRMTrainer:
             observation_loc=loc,
             observation_scale=scale,
         )
+        if qc.compile:  # torch.compile's inductor cache inside the run directory
+            os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(self.run_dir / "torch_compile_cache")
         self.algo: Algo = build_algo(self.cfg.algo, context)
         self.schedulers = {}
         if qc.lr_schedule == "cosine":  # every optimiser annealed over the step budget, stepped once per trainer step
@@ -278,6 +287,10 @@ class WBRMTrainer:
                     "observation", "action"
                 )
             self.true_ratio = lqr_true_density_ratio(env, expert, behaviour)
+        elif self.cfg.env.kind == "minari":  # the datasets' gymnasium env, episodes one by one; built now so a
+            from torchrl_wbrm.data.minari_data import make_minari_eval_env  # missing env fails before training
+
+            self.minari_env = make_minari_eval_env(self.datasets.metadata)
         else:  # batched evaluation envs, one car per episode, built on first use (one per episode count)
             self.mc_envs: dict[int, object] = {}
 
@@ -399,7 +412,7 @@ class WBRMTrainer:
         figures = self.algo.step(self._q_batches().sample(), step)
         if self.schedulers:
             with warnings.catch_warnings():  # an actor updated every k-th step has not stepped yet at step 1
-                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()` before")
+                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
                 for scheduler in self.schedulers.values():
                     scheduler.step()
         return figures
@@ -451,6 +464,14 @@ class WBRMTrainer:
                 out[f"q_bias_{name}"] = errs["bias"]
                 out[f"q_mean_{name}"] = q_hat.double().mean().item()
                 out[f"q_star_mean_{name}"] = errs["q_true_mean"]
+        elif self.cfg.env.kind == "minari":
+            meta = self.datasets.metadata
+            res = evaluate_returns(self.minari_env, self.actor, episodes=episodes, seed=ec.seed,
+                                   max_steps=meta.get("max_episode_steps") or 1000)
+            out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
+            for key in ("behaviour_mean_return", "expert_mean_return"):  # the datasets' own, beside it
+                if meta.get(key) is not None:
+                    out[f"data_{key}"] = float(meta[key])
         else:
             if episodes not in self.mc_envs:
                 self.mc_envs[episodes] = make_mountain_car_env(batch_size=[episodes])
@@ -567,6 +588,9 @@ class WBRMTrainer:
             "data_seconds": self.data_seconds,
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
         }
+        compiled = getattr(self.algo.step, "compiled", None)
+        if compiled is not None:  # q.compile: the first compiled steps' wall time, compilation included
+            results["compile_seconds"] = compiled.compile_seconds
         if self.ratio_network is not None and ratio_records:
             best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
             if best:
@@ -582,6 +606,8 @@ class WBRMTrainer:
 
             plot_run(self.history, self.run_dir, title=f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}",
                      algo=self.cfg.algo)
+        if self.logger is not None:  # wandb: final figures with CIs in the summary, plots, a results table
+            log_run_summary(self.logger, results, self.run_dir)
         return results
 
     # ------------------------------------------------------------------ checkpoints

@@ -1,0 +1,165 @@
+"""env=minari: D, S^b and S^e from local Minari datasets, evaluation on the datasets' gymnasium env, clear errors.
+
+The datasets are written here, on MountainCarContinuous-v0 (and Pendulum-v1, CartPole-v1 for the error and
+Discrete cases), with ``minari.create_dataset_from_buffers`` and ``EpisodeBuffer`` objects: that needs only
+``minari[hdf5]``; ``minari.DataCollector`` would need jax. Nothing is downloaded.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from minari_helpers import minari_wandb_run, mountain_car_datasets, session_dir
+from torchrl_wbrm.data import EnvConfig, make_offline_datasets
+from torchrl_wbrm.data.minari_data import (
+    MinariDataConfig,
+    make_minari_datasets,
+    make_minari_eval_env,
+    read_minari_transitions,
+    resolve_minari_dataset,
+    transitions_to_episodes,
+    write_minari_dataset,
+)
+from torchrl_wbrm.data.minari_examples import PENDULUM, collect_gym_episodes, pendulum_expert_action
+
+
+def _config(**kw) -> MinariDataConfig:
+    data = mountain_car_datasets()
+    base = dict(expert=data["expert"], behaviour=data["behaviour"], data_path=data["data_path"])
+    return MinariDataConfig(**{**base, **kw})
+
+
+@pytest.mark.slow
+def test_recipe_learns_on_minari_datasets():
+    """The recipe on the Minari datasets beats the behaviour data's mean return by a margin (seed 0)."""
+    run_dir, stdout, stderr, results = minari_wandb_run()
+    final, data = results["final"], results["data"]
+    assert results["status"] == "finished" and results["env"] == "minari"
+    behaviour, expert = data["behaviour_mean_return"], data["expert_mean_return"]
+    assert behaviour < expert
+    # measured (seed 0): see the README's "Your own data: Minari"
+    assert final["return"] - final["return_ci"] > behaviour + 10.0, (final, data)
+    assert final["data_behaviour_mean_return"] == pytest.approx(behaviour)
+    assert "datasets' mean episode returns: behaviour" in stdout and "over the evaluation episodes" in stdout
+    # D and S^b come from the behaviour dataset, split by episode; S^e is the expert dataset
+    assert data["transitions"] + data["behaviour_samples"] > data["expert_samples"] > 0
+    # console: torchrl's storage INFO lines are silenced by default
+    assert "[INFO]" not in stdout + stderr
+
+
+def test_split_by_episode_and_spaces():
+    datasets = make_minari_datasets(_config(), seed=0)
+    d, sb, se = (getattr(datasets, n)[:] for n in ("transitions", "behaviour_samples", "expert_samples"))
+    assert set(d["episode"].tolist()).isdisjoint(sb["episode"].tolist())
+    meta = datasets.metadata
+    assert meta["eval_env"] == "MountainCarContinuous-v0" and meta["max_episode_steps"] == 999
+    assert meta["action_low"] == [-1.0] and meta["action_high"] == [1.0]
+    assert d["observation"].dtype == torch.float32 and d["action"].shape[-1] == 1
+    from minari.dataset.minari_dataset import MinariDataset
+
+    assert se.shape[0] == MinariDataset(meta["expert_path"]).total_steps  # every expert step is in S^e
+    assert d.shape[0] + sb.shape[0] == MinariDataset(meta["behaviour_path"]).total_steps
+    # the same through the env factory (env.kind="minari"), and the data cache does not copy local datasets
+    again = make_offline_datasets(EnvConfig(name="minari", kind="minari", minari=_config()), seed=0)
+    assert torch.equal(again.transitions[:]["observation"], d["observation"])
+
+
+def test_round_trip_of_episodes(tmp_path):
+    episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 2, seed=3)
+    ds = write_minari_dataset("rt/pendulum-v0", episodes, data_path=tmp_path, env=PENDULUM, eval_env=PENDULUM)
+    td = read_minari_transitions(ds)
+    assert td.shape[0] == sum(len(e["rewards"]) for e in episodes) == 400
+    np.testing.assert_allclose(td["observation"][:200].numpy(), episodes[0]["observations"][:-1], rtol=1e-6)
+    np.testing.assert_allclose(td["next", "reward"][200:, 0].numpy(), episodes[1]["rewards"], rtol=1e-6)
+    assert bool(td["next", "truncated"][199]) and not bool(td["next", "terminated"].any())
+    back = transitions_to_episodes(td)
+    assert len(back) == 2 and back[1]["observations"].shape == (201, 3)
+    # a local path works as well as an id under the data path
+    assert resolve_minari_dataset(str(tmp_path / "rt" / "pendulum-v0")) == tmp_path / "rt" / "pendulum-v0" / "data"
+
+
+def test_missing_dataset_names_id_and_data_path(tmp_path):
+    with pytest.raises(FileNotFoundError) as err:
+        make_minari_datasets(MinariDataConfig(expert="nowhere/expert-v0", behaviour="nowhere/behaviour-v0",
+                                              data_path=str(tmp_path)))
+    message = str(err.value)
+    assert "'nowhere/expert-v0'" in message and f"Minari data path {tmp_path}" in message
+    assert "minari download" in message  # how to fetch it; nothing is downloaded at run time
+
+
+def test_mismatched_spaces_name_both(tmp_path):
+    episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 1, seed=0)
+    write_minari_dataset("other/pendulum-v0", episodes, data_path=tmp_path, env=PENDULUM, eval_env=PENDULUM)
+    data = mountain_car_datasets()
+    with pytest.raises(ValueError) as err:
+        make_minari_datasets(MinariDataConfig(expert=str(tmp_path / "other" / "pendulum-v0"),
+                                              behaviour=data["behaviour_path"]))
+    message = str(err.value)
+    assert "observation spaces" in message
+    assert "Box([-1. -1. -8.], [1. 1. 8.], (3,), float32)" in message  # Pendulum's
+    assert "Box([-1.2  -0.07], [0.6  0.07], (2,), float32)" in message  # MountainCar's
+
+
+def test_eval_env_recorded_or_given(tmp_path):
+    from gymnasium import spaces
+
+    episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 2, seed=0)
+    write_minari_dataset("anon/expert-v0", episodes, data_path=tmp_path,
+                         observation_space=spaces.Box(np.array([-1, -1, -8], np.float32),
+                                                      np.array([1, 1, 8], np.float32)),
+                         action_space=spaces.Box(-2.0, 2.0, (1,), np.float32))
+    cfg = MinariDataConfig(expert="anon/expert-v0", behaviour="anon/expert-v0", data_path=str(tmp_path))
+    meta = make_minari_datasets(cfg).metadata
+    assert meta["eval_env"] is None
+    with pytest.raises(ValueError, match="env.minari.eval_env"):
+        make_minari_eval_env(meta)
+    cfg.eval_env = PENDULUM
+    env = make_minari_eval_env(make_minari_datasets(cfg).metadata)
+    assert env.action_spec.shape[-1] == 1
+
+
+def test_discrete_action_runs(tmp_path, single_thread):
+    """A Discrete action (CartPole-v1) is read one-hot; the recipe's trainer runs on it and evaluates on gym."""
+    from torchrl_wbrm.training import WBRMTrainer
+
+    def random_policy(obs, rng):
+        return int(rng.integers(0, 2))
+
+    episodes = collect_gym_episodes("CartPole-v1", random_policy, 6, seed=0)
+    write_minari_dataset("cartpole/random-v0", episodes, data_path=tmp_path, env="CartPole-v1", eval_env="CartPole-v1")
+    minari = MinariDataConfig(expert="cartpole/random-v0", behaviour="cartpole/random-v0", data_path=str(tmp_path))
+    datasets = make_minari_datasets(minari)
+    assert datasets.metadata["discrete_actions"] == 2
+    actions = datasets.transitions[:]["action"]
+    assert actions.shape[-1] == 2 and torch.equal(actions.sum(-1), torch.ones(actions.shape[0]))
+    cfg = {"env": {"name": "cartpole", "kind": "minari", "minari": vars(minari)}, "ratio": {"steps": 4, "eval_every": 2,
+           "batch_size": 32, "num_cells": [8]}, "q": {"steps": 4, "eval_every": 4, "batch_size": 32, "num_cells": [8],
+           "actor_num_cells": [8], "gamma": 0.99}, "eval": {"episodes": 1, "train_episodes": 1}, "plots": False,
+           "checkpoint_every": 0, "threads": 1}
+    results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
+    assert results["status"] == "finished" and math.isfinite(results["final"]["return"])
+    assert results["final"]["return"] >= 1.0  # at least one step of CartPole was taken
+
+
+def test_console_verbose_switch(caplog):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_wbrm.training.logging import configure_console
+
+    def storage_lines() -> int:
+        caplog.clear()
+        TensorDictReplayBuffer(storage=LazyTensorStorage(4)).extend(TensorDict({"x": torch.zeros(4)}, [4]))
+        return sum("Initialized LazyTensorStorage" in r.getMessage() for r in caplog.records)
+
+    try:
+        configure_console(False)
+        assert storage_lines() == 0
+        configure_console(True)
+        assert storage_lines() == 1
+    finally:
+        configure_console(False)

@@ -1,0 +1,366 @@
+"""Minari datasets in and out: D, S^b and S^e from two local Minari datasets, and any transitions to a Minari dataset.
+
+Minari (the Farama Foundation's successor of D4RL) stores offline-RL data as episodes of ``observations``
+(``T + 1`` rows), ``actions``, ``rewards``, ``terminations`` and ``truncations`` (``T`` rows each), with the
+observation and action spaces and, when the data came from a registered gymnasium env, that env's spec.
+
+:func:`make_minari_datasets` reads two such datasets, an *expert* one and a *behaviour* one:
+
+* ``S^e`` is every state-action of the expert dataset;
+* the behaviour dataset is split *by episode* into ``D`` (transitions for Q) and ``S^b`` (state-actions for the
+  ratio), as for the project's own data (:meth:`OfflineDatasets.from_behaviour_and_expert`).
+
+A dataset is named by its Minari id (looked up under ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``, or
+``MinariDataConfig.data_path``) or by a local path (the dataset's folder or its ``data/`` folder). Nothing is ever
+downloaded: a dataset that is not on disk is a ``FileNotFoundError`` naming the id and the path searched. Two
+datasets with different observation or action spaces are a ``ValueError`` naming both spaces.
+
+Spaces: a ``Box`` observation and a ``Box`` or ``Discrete`` action. A ``Discrete(n)`` action is stored one-hot
+(``n`` floats), so the ratio network, Q and the actor see a vector as for a box; the evaluation env maps the
+actor's output back to ``argmax`` (:func:`make_minari_eval_env`); this relaxation runs, its learning is not measured here.
+
+Reading uses Minari's own reader (``MinariDataset.iterate_episodes``). torchrl's ``MinariExperienceReplay`` does the
+same conversion, but it reads only ids under ``MINARI_DATASETS_PATH`` and writes a second, memory-mapped copy of
+every dataset under its own cache folder; the datasets here are read once into memory, so it is not used.
+
+:func:`write_minari_dataset` writes episodes as a Minari dataset through ``minari.create_dataset_from_buffers``
+with ``EpisodeBuffer`` objects, which needs only ``minari[hdf5]`` (``minari.DataCollector`` would need jax, the
+``minari[create]`` extra). :func:`transitions_to_episodes` turns this project's flat transitions into those
+episodes (``recipes/make_dataset.py format=minari``).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Optional
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_wbrm.data.datasets import OfflineDatasets, episode_returns
+
+__all__ = [
+    "MinariDataConfig",
+    "make_minari_datasets",
+    "make_minari_eval_env",
+    "minari_data_root",
+    "resolve_minari_dataset",
+    "read_minari_transitions",
+    "write_minari_dataset",
+    "transitions_to_episodes",
+]
+
+
+@dataclass
+class MinariDataConfig:
+    """Which Minari datasets (``env=minari``; see ``configs/env/minari.yaml``).
+
+    Attributes:
+        expert: the expert dataset (-> ``S^e``): a Minari id (``"pendulum/expert-v0"``) or a local path.
+        behaviour: the behaviour dataset (-> ``D`` and ``S^b``, split by episode): an id or a path.
+        eval_env: the gymnasium id to evaluate on (``None``: the dataset's own evaluation env, else the env it was
+            collected on, as recorded in the expert dataset).
+        ratio_fraction: share of the behaviour episodes that go to ``S^b``.
+        data_path: where ids are looked up (``None``: ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``).
+    """
+
+    expert: str = ""
+    behaviour: str = ""
+    eval_env: Optional[str] = None
+    ratio_fraction: float = 0.5
+    data_path: Optional[str] = None
+
+
+def minari_data_root(data_path: str | os.PathLike | None = None) -> Path:
+    """The folder Minari ids are looked up in (nothing is created)."""
+    if data_path:
+        return Path(data_path).expanduser()
+    env_path = os.environ.get("MINARI_DATASETS_PATH")
+    return Path(env_path).expanduser() if env_path else Path.home() / ".minari" / "datasets"
+
+
+def _is_data_dir(path: Path) -> bool:
+    return path.is_dir() and (path / "metadata.json").is_file() and any(path.glob("main_data.*"))
+
+
+def resolve_minari_dataset(ref: str, data_path: str | os.PathLike | None = None) -> Path:
+    """The ``data/`` folder of the Minari dataset ``ref`` (an id or a local path); never downloads.
+
+    Raises ``FileNotFoundError`` naming the id (or path) and the Minari data path searched.
+    """
+    if not ref:
+        raise ValueError("No Minari dataset given: set env.minari.expert and env.minari.behaviour (ids or paths).")
+    path = Path(ref).expanduser()
+    for candidate in (path / "data", path):
+        if _is_data_dir(candidate):
+            return candidate
+    root = minari_data_root(data_path)
+    for candidate in (root / ref / "data", root / ref):
+        if _is_data_dir(candidate):
+            return candidate
+    raise FileNotFoundError(
+        f"Minari dataset {ref!r} not found: neither a local dataset folder nor {root / ref / 'data'} "
+        f"(Minari data path {root}; set MINARI_DATASETS_PATH or env.minari.data_path). Nothing is downloaded at run "
+        f"time: fetch it once with `minari download {ref}` where there is a network, or give the dataset's folder."
+    )
+
+
+def _open(ref: str, data_path=None):
+    from minari.dataset.minari_dataset import MinariDataset
+
+    return MinariDataset(str(resolve_minari_dataset(ref, data_path)))
+
+
+def _check_spaces(observation_space, action_space, where: str) -> None:
+    from gymnasium import spaces
+
+    if not isinstance(observation_space, spaces.Box):
+        raise ValueError(f"{where}: the observation space is {observation_space}; only a Box is supported.")
+    if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
+        raise ValueError(f"{where}: the action space is {action_space}; only a Box or a Discrete is supported.")
+
+
+def _action_tensor(actions: np.ndarray, action_space) -> torch.Tensor:
+    from gymnasium import spaces
+
+    if isinstance(action_space, spaces.Discrete):
+        index = torch.as_tensor(np.asarray(actions).reshape(-1).astype(np.int64)) - int(action_space.start)
+        return torch.nn.functional.one_hot(index, int(action_space.n)).float()
+    a = torch.as_tensor(np.asarray(actions, dtype=np.float32))
+    return a.reshape(a.shape[0], -1)
+
+
+def read_minari_transitions(dataset, *, episode_offset: int = 0) -> TensorDict:
+    """Every step of a ``MinariDataset`` as flat transitions in this project's layout (``[N]``, float32).
+
+    Keys: ``observation``, ``action`` (one-hot for a ``Discrete`` space), ``("next", "observation" | "reward" |
+    "done" | "terminated" | "truncated")`` and an integer ``"episode"`` (the Minari episode id plus
+    ``episode_offset``).
+    """
+    parts = []
+    for episode in dataset.iterate_episodes():
+        obs = torch.as_tensor(np.asarray(episode.observations, dtype=np.float32))
+        steps = len(episode.rewards)
+        if steps == 0:
+            continue
+        obs = obs.reshape(obs.shape[0], -1)
+        if obs.shape[0] != steps + 1:
+            raise ValueError(f"Minari episode {episode.id} has {obs.shape[0]} observations for {steps} steps.")
+        terminated = torch.as_tensor(np.asarray(episode.terminations, dtype=bool)).reshape(steps, 1)
+        truncated = torch.as_tensor(np.asarray(episode.truncations, dtype=bool)).reshape(steps, 1)
+        parts.append(TensorDict({
+            "observation": obs[:-1],
+            "action": _action_tensor(episode.actions, dataset.action_space),
+            "episode": torch.full((steps,), int(episode.id) + episode_offset, dtype=torch.int64),
+            "next": {
+                "observation": obs[1:],
+                "reward": torch.as_tensor(np.asarray(episode.rewards, dtype=np.float32)).reshape(steps, 1),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            },
+        }, batch_size=[steps]))
+    if not parts:
+        raise ValueError("The Minari dataset holds no steps.")
+    return torch.cat(parts, 0)
+
+
+def _space_text(space) -> str:
+    return repr(space)
+
+
+def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str = "lazy",
+                         scratch_dir=None) -> OfflineDatasets:
+    """``S^e`` from ``data.expert``; ``D`` and ``S^b`` from ``data.behaviour`` split by episode (seeded by ``seed``).
+
+    Metadata record both datasets' ids and paths, their mean undiscounted episode returns (complete episodes), the
+    spaces, the action bounds and the evaluation env's id (``None`` if neither the config nor the dataset names
+    one).
+    """
+    from gymnasium import spaces
+
+    expert_ds, behaviour_ds = _open(data.expert, data.data_path), _open(data.behaviour, data.data_path)
+    for name, ds, ref in (("expert", expert_ds, data.expert), ("behaviour", behaviour_ds, data.behaviour)):
+        _check_spaces(ds.observation_space, ds.action_space, f"Minari {name} dataset {ref!r}")
+    for what in ("observation_space", "action_space"):
+        a, b = getattr(expert_ds, what), getattr(behaviour_ds, what)
+        if a != b:
+            raise ValueError(
+                f"The Minari datasets have different {what.replace('_', ' ')}s: expert {data.expert!r} has "
+                f"{_space_text(a)}, behaviour {data.behaviour!r} has {_space_text(b)}. Both must come from the same env."
+            )
+    expert = read_minari_transitions(expert_ds)
+    behaviour = read_minari_transitions(behaviour_ds)
+    action_space = expert_ds.action_space
+    if isinstance(action_space, spaces.Discrete):
+        low, high, discrete = [0.0] * int(action_space.n), [1.0] * int(action_space.n), int(action_space.n)
+    else:
+        low = np.broadcast_to(action_space.low, action_space.shape).astype(float).reshape(-1).tolist()
+        high = np.broadcast_to(action_space.high, action_space.shape).astype(float).reshape(-1).tolist()
+        discrete = None
+    metadata = {
+        "env": "minari",
+        "expert_dataset": data.expert,
+        "behaviour_dataset": data.behaviour,
+        "expert_path": str(resolve_minari_dataset(data.expert, data.data_path)),
+        "behaviour_path": str(resolve_minari_dataset(data.behaviour, data.data_path)),
+        "observation_space": _space_text(expert_ds.observation_space),
+        "action_space": _space_text(action_space),
+        "action_low": low,
+        "action_high": high,
+        "discrete_actions": discrete,
+        "eval_env": data.eval_env or _recorded_env_id(expert_ds) or _recorded_env_id(behaviour_ds),
+        "max_episode_steps": _recorded_max_steps(expert_ds),
+        "seed": seed,
+        "behaviour_mean_return": _mean_return(behaviour),
+        "expert_mean_return": _mean_return(expert),
+        "behaviour_episodes": int(torch.unique(behaviour["episode"]).numel()),
+        "expert_episodes": int(torch.unique(expert["episode"]).numel()),
+    }
+    return OfflineDatasets.from_behaviour_and_expert(
+        behaviour,
+        expert.select("observation", "action", "episode"),
+        ratio_fraction=data.ratio_fraction,
+        generator=torch.Generator().manual_seed(seed + 3),
+        metadata=metadata,
+        storage=storage,
+        scratch_dir=scratch_dir,
+    )
+
+
+def _mean_return(data: TensorDictBase) -> float | None:
+    returns = episode_returns(data)
+    return float(returns.mean()) if returns.numel() else None
+
+
+def _recorded_spec(dataset):
+    spec = dataset.spec
+    return getattr(spec, "eval_env_spec", None) or getattr(spec, "env_spec", None)
+
+
+def _recorded_env_id(dataset) -> str | None:
+    spec = _recorded_spec(dataset)
+    return None if spec is None else spec.id
+
+
+def _recorded_max_steps(dataset) -> int | None:
+    spec = _recorded_spec(dataset)
+    return None if spec is None else spec.max_episode_steps
+
+
+def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
+    """The torchrl ``GymEnv`` of the datasets' gymnasium env (``metadata`` of :func:`make_minari_datasets`).
+
+    Float64 observations are cast to float32 (``DoubleToFloat``). For a ``Discrete`` action the env is built
+    one-hot (``categorical_action_encoding=False``) and takes the policy's ``n`` scores: the inverse transform steps
+    gym with their ``argmax``. Raises a ``ValueError`` when no env is known (datasets that record none, and no
+    ``env.minari.eval_env``), and gymnasium's own error for an id it does not know.
+    """
+    from torchrl.envs import Compose, DoubleToFloat, GymEnv, Transform, TransformedEnv
+
+    class ScoresToOneHot(Transform):
+        """The policy writes ``n`` scores; the env gets the one-hot vector of their argmax."""
+
+        def __init__(self):
+            super().__init__(in_keys_inv=["action"], out_keys_inv=["action"])
+
+        def _inv_apply_transform(self, action: torch.Tensor) -> torch.Tensor:
+            return torch.nn.functional.one_hot(action.argmax(-1), action.shape[-1]).to(torch.long)
+
+    env_id = metadata.get("eval_env")
+    if not env_id:
+        raise ValueError(
+            f"The Minari datasets {metadata.get('expert_dataset')!r} / {metadata.get('behaviour_dataset')!r} record no "
+            f"gymnasium env to evaluate on: pass env.minari.eval_env=<gymnasium id>."
+        )
+    base = GymEnv(env_id, categorical_action_encoding=False)
+    transforms = []
+    if metadata.get("discrete_actions"):
+        transforms.append(ScoresToOneHot())
+    if any(spec.dtype == torch.float64 for spec in base.observation_spec.values(True, True)):
+        transforms.append(DoubleToFloat())
+    env = TransformedEnv(base, Compose(*transforms)) if transforms else base
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+@contextlib.contextmanager
+def _minari_path(root: Path):
+    previous = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(root)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = previous
+
+
+def write_minari_dataset(
+    dataset_id: str,
+    episodes: Iterable[dict],
+    *,
+    data_path: str | os.PathLike | None = None,
+    env: str | None = None,
+    eval_env: str | None = None,
+    observation_space=None,
+    action_space=None,
+    algorithm_name: str | None = None,
+    description: str | None = None,
+    author: str | None = None,
+):
+    """Write ``episodes`` as the Minari dataset ``dataset_id`` under ``data_path`` (default: Minari's data path).
+
+    Each episode is a dict of arrays: ``observations`` (``T + 1`` rows), ``actions``, ``rewards``, ``terminations``
+    and ``truncations`` (``T`` rows). Written with ``minari.create_dataset_from_buffers`` from ``EpisodeBuffer``
+    objects (``minari[hdf5]`` only; no jax). ``env`` (a registered gymnasium id) records the env and its spaces; an
+    env that gymnasium does not know (the LQR systems) needs ``observation_space`` and ``action_space`` instead.
+    Returns the ``MinariDataset``.
+    """
+    import minari
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    buffers = []
+    for i, ep in enumerate(episodes):
+        buffers.append(EpisodeBuffer(
+            id=i,
+            observations=np.asarray(ep["observations"]),
+            actions=np.asarray(ep["actions"]),
+            rewards=[float(r) for r in np.asarray(ep["rewards"]).reshape(-1)],
+            terminations=[bool(t) for t in np.asarray(ep["terminations"]).reshape(-1)],
+            truncations=[bool(t) for t in np.asarray(ep["truncations"]).reshape(-1)],
+            infos={},
+        ))
+    root = minari_data_root(data_path)
+    root.mkdir(parents=True, exist_ok=True)
+    with _minari_path(root), warnings.catch_warnings():  # Minari's advice on optional metadata (author e-mail, ...)
+        warnings.filterwarnings("ignore", message=r".* is set to None", category=UserWarning)
+        warnings.filterwarnings("ignore", message=r"env_spec is None", category=UserWarning)
+        return minari.create_dataset_from_buffers(
+            dataset_id=dataset_id, buffer=buffers, env=env, eval_env=eval_env, algorithm_name=algorithm_name,
+            observation_space=observation_space, action_space=action_space, description=description, author=author,
+        )
+
+
+def transitions_to_episodes(data: TensorDictBase) -> list[dict]:
+    """Flat transitions (``"episode"`` ids, each episode's steps in time order) -> the episode dicts of
+    :func:`write_minari_dataset` (``observations`` gets the last ``("next", "observation")`` appended)."""
+    episodes = []
+    ids = data["episode"]
+    for episode in torch.unique_consecutive(ids):
+        ep = data[ids == episode]
+        obs = torch.cat([ep["observation"], ep["next", "observation"][-1:]], 0)
+        episodes.append({
+            "observations": obs.numpy(),
+            "actions": ep["action"].numpy(),
+            "rewards": ep["next", "reward"].reshape(-1).numpy(),
+            "terminations": ep["next", "terminated"].reshape(-1).numpy(),
+            "truncations": ep["next", "truncated"].reshape(-1).numpy(),
+        })
+    return episodes

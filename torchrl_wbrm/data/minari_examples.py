@@ -1,0 +1,157 @@
+"""Small Minari datasets on gymnasium classic-control envs, made locally: an expert heuristic and a behaviour mix.
+
+``MountainCarContinuous-v0`` (:func:`make_mountain_car_datasets`): the expert pushes along the velocity
+(``0.9 sign(v) + 0.1 U(−1, 1)``, about +93.5 in about 80 steps); the behaviour is whole episodes of uniform random
+actions (about −33 over the 999-step limit) and whole episodes of the expert with noise ``U(−1, 1)``.
+
+``Pendulum-v1`` (:func:`make_pendulum_datasets`) (Box observation ``[cos θ, sin θ, θ̇]``, Box action ``[-2, 2]``, 200-step episodes):
+
+* expert — an energy-pumping swing-up with a PD catch near the top (:func:`pendulum_expert_action`; about −140
+  per episode, against about −1,180 for uniform random torques), plus a little action noise;
+* behaviour — whole episodes of uniform random torques, and whole episodes of the expert with more noise.
+
+Written with :func:`~torchrl_wbrm.data.minari_data.write_minari_dataset` (``minari[hdf5]`` only), so
+``env=minari`` can read them back; nothing is downloaded::
+
+    python -m torchrl_wbrm.data.minari_examples --env mountain_car --data-path datasets/minari
+    python recipes/wbrm_offline.py env=minari env.minari.expert=datasets/minari/mountain_car/expert-v0 \\
+        env.minari.behaviour=datasets/minari/mountain_car/behaviour-v0 q.bc_alpha=2.5
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from typing import Callable
+
+import numpy as np
+
+from torchrl_wbrm.data.minari_data import write_minari_dataset
+
+__all__ = [
+    "pendulum_expert_action",
+    "mountain_car_expert_action",
+    "collect_gym_episodes",
+    "make_pendulum_datasets",
+    "make_mountain_car_datasets",
+    "PENDULUM",
+    "MOUNTAIN_CAR",
+]
+
+PENDULUM = "Pendulum-v1"
+MOUNTAIN_CAR = "MountainCarContinuous-v0"
+
+
+def pendulum_expert_action(observation: np.ndarray) -> np.ndarray:
+    """Swing-up heuristic for ``Pendulum-v1``: pump energy ``½θ̇² + 15 cos θ`` towards the upright's 15 at full
+    torque, and catch with ``−(12θ + 2.5θ̇)`` once ``cos θ > 0.85``."""
+    c, s, w = (float(v) for v in np.asarray(observation).reshape(-1)[:3])
+    theta = np.arctan2(s, c)
+    if c > 0.85:
+        u = -(12.0 * theta + 2.5 * w)
+    else:
+        u = 2.0 * np.sign((15.0 - (0.5 * w * w + 15.0 * c)) * w + 1e-6)
+    return np.clip(np.array([u], dtype=np.float32), -2.0, 2.0)
+
+
+def mountain_car_expert_action(observation: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """``clip(0.9 sign(v) + noise U(−1, 1), −1, 1)`` for ``MountainCarContinuous-v0`` (left at rest)."""
+    direction = 1.0 if float(np.asarray(observation).reshape(-1)[1]) > 0 else -1.0
+    return np.clip(np.array([0.9 * direction + noise * rng.uniform(-1.0, 1.0)], dtype=np.float32), -1.0, 1.0)
+
+
+def collect_gym_episodes(env_id: str, policy: Callable[[np.ndarray, np.random.Generator], np.ndarray], episodes: int,
+                         *, seed: int) -> list[dict]:
+    """``episodes`` whole episodes of ``policy(observation, rng)`` in ``gymnasium.make(env_id)``, episode ``i`` reset
+    with ``seed + i``: the episode dicts of :func:`~torchrl_wbrm.data.minari_data.write_minari_dataset`."""
+    import gymnasium as gym
+
+    env = gym.make(env_id)
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i)
+        observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
+        done = False
+        while not done:
+            action = policy(obs, rng)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            observations.append(obs)
+            actions.append(action)
+            rewards.append(reward)
+            terminations.append(terminated)
+            truncations.append(truncated)
+            done = terminated or truncated
+        out.append({"observations": np.stack(observations), "actions": np.stack(actions),
+                    "rewards": np.asarray(rewards, dtype=np.float64), "terminations": np.asarray(terminations),
+                    "truncations": np.asarray(truncations)})
+    env.close()
+    return out
+
+
+def _noisy_expert(std: float):
+    def policy(obs, rng):
+        return np.clip(pendulum_expert_action(obs) + rng.normal(0.0, std, 1).astype(np.float32), -2.0, 2.0)
+
+    return policy
+
+
+def _uniform(obs, rng):
+    return rng.uniform(-2.0, 2.0, 1).astype(np.float32)
+
+
+def make_pendulum_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 20, random_episodes: int = 40,
+                           noisy_expert_episodes: int = 20, seed: int = 0, namespace: str = "pendulum") -> dict:
+    """Write ``<namespace>/expert-v0`` and ``<namespace>/behaviour-v0`` under ``data_path``; returns their ids and
+    paths. Expert: the heuristic with action noise 0.1; behaviour: ``random_episodes`` of uniform torques, then
+    ``noisy_expert_episodes`` of the heuristic with noise 1.0 (other seeds than the expert's)."""
+    expert = collect_gym_episodes(PENDULUM, _noisy_expert(0.1), expert_episodes, seed=seed)
+    behaviour = collect_gym_episodes(PENDULUM, _uniform, random_episodes, seed=seed + 10_000)
+    behaviour += collect_gym_episodes(PENDULUM, _noisy_expert(1.0), noisy_expert_episodes, seed=seed + 20_000)
+    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
+    write_minari_dataset(ids["expert"], expert, data_path=data_path, env=PENDULUM, eval_env=PENDULUM,
+                         algorithm_name="swing-up heuristic, action noise 0.1",
+                         description="torchrl_wbrm example: Pendulum-v1 expert")
+    write_minari_dataset(ids["behaviour"], behaviour, data_path=data_path, env=PENDULUM, eval_env=PENDULUM,
+                         algorithm_name="uniform random torques, then the heuristic with action noise 1.0",
+                         description="torchrl_wbrm example: Pendulum-v1 behaviour")
+    return {**ids, **{f"{k}_path": os.path.join(os.fspath(data_path), v) for k, v in ids.items()}}
+
+
+def make_mountain_car_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 20, random_episodes: int = 6,
+                               noisy_expert_episodes: int = 30, seed: int = 0,
+                               namespace: str = "mountain_car") -> dict:
+    """Write ``<namespace>/expert-v0`` (the expert, noise 0.1) and ``<namespace>/behaviour-v0``
+    (``random_episodes`` of uniform actions, then ``noisy_expert_episodes`` of the expert with noise 1) under
+    ``data_path``; returns their ids and paths."""
+    def expert(noise):
+        return lambda obs, rng: mountain_car_expert_action(obs, noise, rng)
+
+    def uniform(obs, rng):
+        return rng.uniform(-1.0, 1.0, 1).astype(np.float32)
+
+    ex = collect_gym_episodes(MOUNTAIN_CAR, expert(0.1), expert_episodes, seed=seed)
+    behaviour = collect_gym_episodes(MOUNTAIN_CAR, uniform, random_episodes, seed=seed + 10_000)
+    behaviour += collect_gym_episodes(MOUNTAIN_CAR, expert(1.0), noisy_expert_episodes, seed=seed + 20_000)
+    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
+    write_minari_dataset(ids["expert"], ex, data_path=data_path, env=MOUNTAIN_CAR, eval_env=MOUNTAIN_CAR,
+                         algorithm_name="0.9 sign(v) + 0.1 U(-1, 1)",
+                         description="torchrl_wbrm example: MountainCarContinuous-v0 expert")
+    write_minari_dataset(ids["behaviour"], behaviour, data_path=data_path, env=MOUNTAIN_CAR, eval_env=MOUNTAIN_CAR,
+                         algorithm_name="uniform random actions, then 0.9 sign(v) + U(-1, 1)",
+                         description="torchrl_wbrm example: MountainCarContinuous-v0 behaviour")
+    return {**ids, **{f"{k}_path": os.path.join(os.fspath(data_path), v) for k, v in ids.items()}}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--env", choices=("mountain_car", "pendulum"), default="mountain_car")
+    parser.add_argument("--data-path", default="datasets/minari", help="Minari data path to write under")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    make = make_mountain_car_datasets if args.env == "mountain_car" else make_pendulum_datasets
+    out = make(args.data_path, seed=args.seed)
+    print(f"expert:    {out['expert_path']}\nbehaviour: {out['behaviour_path']}")
+
+
+if __name__ == "__main__":
+    main()
