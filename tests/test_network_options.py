@@ -195,3 +195,28 @@ def test_q_accuracy_study_quick(tmp_path):
     assert "### activation" in tables and "| lqr_exp1 | ReLU |" in tables and "SiLU (default)" in tables
     assert "### Selection (no ground truth)" in tables
     assert (out / "q_accuracy_study.png").stat().st_size > 0
+
+
+def _compose(*overrides):
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_wbrm.training import register_configs
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        return compose("wbrm_offline", overrides=list(overrides))
+
+
+def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
+    import yaml
+
+    mc_defaults = yaml.safe_load((ROOT / "configs" / "env_defaults" / "mountain_car.yaml").read_text())
+    mc = _compose("env=mountain_car")
+    for section, values in mc_defaults.items():
+        for key, value in values.items():
+            assert mc[section][key] == value, f"{section}.{key}"
+    assert mc.q.bc_alpha is not None and mc.q.normalise_observations  # the BC term keeps the actor on the data
+    lqr = _compose("env=lqr_exp1")
+    assert lqr.q.bc_alpha is None and not lqr.q.normalise_observations and lqr.q.gamma is None
+    assert _compose("env=mountain_car", "q.bc_alpha=1.0").q.bc_alpha == 1.0
+    assert _compose("env=mountain_car", "algo=td3bc").q.gamma == mc.q.gamma  # baselines get the env's defaults too
