@@ -135,6 +135,9 @@ def main() -> None:
     text = tables(out, cells)
     (out / "tables.md").write_text(text + "\n")
     print(text)
+    from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
+
+    log_study_summary("ablations", out, tables=[out / "tables.md"])
 
 
 if __name__ == "__main__":

@@ -123,6 +123,9 @@ def main() -> None:
     results = Parallel(n_jobs=args.jobs)(delayed(run)(ov, d) for _, _, _, ov, d in todo)
     records = [(k, size, seed, r) for (k, size, seed, _, _), r in zip(todo, results)]
     print(report(records, out))
+    from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
+
+    log_study_summary("convergence_study", out, tables=[out / "convergence.md"], figures=[out / "convergence.png"])
 
 
 if __name__ == "__main__":

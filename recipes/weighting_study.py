@@ -197,6 +197,9 @@ def main() -> None:
     (out / "tables.md").write_text(text + "\n")
     plot(out)
     print(text)
+    from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
+
+    log_study_summary("weighting_study", out, tables=[out / "tables.md"], figures=[out / "weighting_study.png"])
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from minari_helpers import minari_wandb_run, mountain_car_datasets, session_dir
+from minari_helpers import ROOT, minari_wandb_run, mountain_car_datasets
 from torchrl_wbrm.data import EnvConfig, make_offline_datasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
@@ -163,3 +163,41 @@ def test_console_verbose_switch(caplog):
         assert storage_lines() == 1
     finally:
         configure_console(False)
+
+
+@pytest.mark.parametrize("env_name", ["lqr_exp1", "mountain_car"])
+def test_make_dataset_writes_minari(tmp_path, env_name):
+    """recipes/make_dataset.py format=minari: the project's own collections as Minari datasets, read back whole."""
+    import importlib.util
+
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.training.config import MakeDatasetConfig
+
+    spec = importlib.util.spec_from_file_location("make_dataset_recipe", ROOT / "recipes" / "make_dataset.py")
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    sizes = {"lqr_exp1": {"env.kind": "lqr", "env.lqr_data.behaviour_episodes": 20, "env.lqr_data.expert_episodes": 10,
+                          "env.lqr_data.parallel_envs": 10},
+             "mountain_car": {"env.kind": "mountain_car", "env.mountain_car_data.expert_transitions": 400,
+                              "env.mountain_car_data.behaviour_transitions": 1200}}[env_name]
+    cfg = OmegaConf.merge(OmegaConf.structured(MakeDatasetConfig),
+                          OmegaConf.from_dotlist([f"env.name={env_name}", "format=minari",
+                                                  *(f"{k}={v}" for k, v in sizes.items())]))
+    recipe._write_minari(cfg, tmp_path)
+    own = make_offline_datasets(cfg.env, seed=0)
+    minari = MinariDataConfig(expert=f"{env_name}/expert-v0", behaviour=f"{env_name}/behaviour-v0",
+                              data_path=str(tmp_path))
+    back = make_minari_datasets(minari, seed=0)
+    own_sizes, back_sizes = own.sizes(), back.sizes()
+    assert back_sizes["expert_samples"] == own_sizes["expert_samples"]
+    assert (back_sizes["transitions"] + back_sizes["behaviour_samples"]
+            == own_sizes["transitions"] + own_sizes["behaviour_samples"])
+    if env_name == "mountain_car":  # both undiscounted (LQR's own metadata hold discounted returns)
+        for key in ("behaviour_mean_return", "expert_mean_return"):
+            assert back.metadata[key] == pytest.approx(own.metadata[key], rel=1e-5), key
+    else:
+        assert 150 < back.metadata["behaviour_mean_return"] < back.metadata["expert_mean_return"] < 200
+    torch.testing.assert_close(back.expert_samples[:]["observation"].sort(0).values,
+                               own.expert_samples[:]["observation"].sort(0).values)
+    assert back.metadata["eval_env"] == ("MountainCarContinuous-v0" if env_name == "mountain_car" else None)

@@ -349,12 +349,17 @@ def write_minari_dataset(
 
 
 def transitions_to_episodes(data: TensorDictBase) -> list[dict]:
-    """Flat transitions (``"episode"`` ids, each episode's steps in time order) -> the episode dicts of
-    :func:`write_minari_dataset` (``observations`` gets the last ``("next", "observation")`` appended)."""
-    episodes = []
+    """Flat transitions (``"episode"`` ids; the steps of an episode in time order, though not necessarily
+    contiguous, as a collector writes them) -> the episode dicts of :func:`write_minari_dataset`, in order of
+    episode id (``observations`` gets the episode's last ``("next", "observation")`` appended)."""
     ids = data["episode"]
-    for episode in torch.unique_consecutive(ids):
-        ep = data[ids == episode]
+    order = torch.argsort(ids, stable=True)  # stable: each episode's steps keep their time order
+    data, ids = data[order], ids[order]
+    _, counts = torch.unique_consecutive(ids, return_counts=True)
+    episodes, start = [], 0
+    for count in counts.tolist():
+        ep = data[start:start + count]
+        start += count
         obs = torch.cat([ep["observation"], ep["next", "observation"][-1:]], 0)
         episodes.append({
             "observations": obs.numpy(),

@@ -342,12 +342,18 @@ class MakeDatasetConfig:
         seed: the data seed.
         out: output directory (relative paths are relative to the launch directory).
         storage: ``"lazy"`` (RAM) or ``"memmap"`` (disk) replay-buffer storage while collecting.
+        format: ``"torchrl"`` (this project's verified memory-mapped sets, :meth:`OfflineDatasets.save`) or
+            ``"minari"`` (two Minari datasets, ``<minari_namespace>/expert-v0`` and ``<minari_namespace>/behaviour-v0``,
+            written under ``out``, which then is a Minari data path).
+        minari_namespace: the Minari namespace of the two datasets (``None``: ``env.name``).
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
     seed: int = 0
     out: str = "datasets/${env.name}_seed${seed}"
     storage: str = "lazy"
+    format: str = "torchrl"
+    minari_namespace: Optional[str] = None
 
 
 _CHOICES = {
