@@ -25,7 +25,7 @@ from torchrl_wbrm.modules.maximisers import (
 from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import (
     as_bool_flag,
-    check_finite,
+    check_all_finite,
     check_not_empty,
     check_reduction,
     check_same_features,
@@ -573,26 +573,28 @@ class WeightedBellmanLoss(LossModule):
         """
         batch = tensordict.batch_size
         check_not_empty(batch, "Bellman-residual")
-        flags = {}
+        next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
+        flags, finite = {}, {}
         for key, why in ((self.tensor_keys.reward, "the reward"), (self.tensor_keys.done, "episode-end flag"),
                          (self.tensor_keys.terminated, "episode-end flag; no bootstrap where it is True")):
-            value = per_sample(get_entry(tensordict, _next(key), why), batch, _next(key))
+            value = next_td.get(key, None)
+            if value is None:  # the KeyError names the full key
+                value = get_entry(tensordict, _next(key), why)
+            per_sample(value, batch, _next(key))
             if key == self.tensor_keys.reward:
-                check_finite(value, _next(key))
+                finite[_next(key)] = value
             else:
-                flag = as_bool_flag(tensordict.get(_next(key)), _next(key))
-                if flag.dtype is not tensordict.get(_next(key)).dtype:
+                flag = as_bool_flag(value, _next(key))
+                if flag is not value:
                     flags[key] = flag
-        next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
         for key in self._observation_keys:
             obs = get_entry(tensordict, key, "an input of the value network")
             next_obs = get_entry(next_td, key, "a next-state input of the value network")
             check_same_features(obs, next_obs, key, _next(key), batch, batch)
-            check_finite(obs, key)
-            check_finite(next_obs, _next(key))
+            finite[key], finite[_next(key)] = obs, next_obs
         if not self.discrete:
-            check_finite(get_entry(tensordict, self.tensor_keys.action, "the action taken in the data"),
-                         self.tensor_keys.action)
+            finite[self.tensor_keys.action] = get_entry(tensordict, self.tensor_keys.action, "the action taken in the data")
+        check_all_finite(finite)
         if flags:  # a shallow copy with bool flags, so the caller's TensorDict is not modified
             tensordict = tensordict.copy()
             next_td = next_td.copy()
