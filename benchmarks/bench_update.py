@@ -15,8 +15,8 @@ weights, on the same batch:
   (its actor loss ``−Q(x, μ(x)).mean()`` backpropagates through Q as CleanRL's TD3 does);
 * ratio step: ``RobustDensityRatioLoss`` + backward + gradient clipping + Adam vs ``mean_b w^{3/2} − 3 mean_e
   w^{1/2}`` by hand;
-* each also "with sampling": the trainer's own buffer draw (``TensorDictReplayBuffer.sample``, ``PairedSampler``)
-  against ``torch.randint`` indexing of plain tensors.
+* each also "with sampling": the trainer's own draw from the replay buffer (``BufferBatches``, ``PairedBatches``:
+  the buffer's own indices, gathered into preallocated tensors) against ``torch.randint`` indexing of plain tensors.
 
 Printed: median time per step over rounds and the median over rounds of the ratio to the twin (same round).
 """
@@ -35,10 +35,10 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _timing import compare, print_comparison, single_thread  # noqa: E402
 
 from torchrl_wbrm.data import make_replay_buffer  # noqa: E402
-from torchrl_wbrm.data.datasets import PairedSampler  # noqa: E402
+from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches  # noqa: E402
 from torchrl_wbrm.modules import DensityRatioNetwork  # noqa: E402
 from torchrl_wbrm.objectives import RobustDensityRatioLoss  # noqa: E402
-from torchrl_wbrm.training.algos import AlgoContext, build_algo  # noqa: E402
+from torchrl_wbrm.training.algos import AlgoContext, adam_options, build_algo  # noqa: E402
 from torchrl_wbrm.training.config import WBRMConfig  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
@@ -152,9 +152,11 @@ def q_comparisons(cfg, device, iterations, rounds, compiled: bool):
         counter["twin"] += 1
         return twin.full_step(tensors, counter["twin"])
 
+    batches = BufferBatches(buffer, device=device)  # what the trainer samples with
+
     def ours_sampled():
         counter["ours"] += 1
-        return algo.step(buffer.sample().to(device), counter["ours"])
+        return algo.step(batches.sample(), counter["ours"])
 
     def twin_sampled():
         counter["twin"] += 1
@@ -170,7 +172,7 @@ def q_comparisons(cfg, device, iterations, rounds, compiled: bool):
     r2 = compare({"twin (plain torch)": twin_full, f"algo.step{label}": ours_full},
                  yardstick="twin (plain torch)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("full step: Q, actor every 2nd step, targets (fixed batch)", r2, yardstick="twin (plain torch)")
-    r3 = compare({"twin (randint indexing)": twin_sampled, f"buffer.sample + algo.step{label}": ours_sampled},
+    r3 = compare({"twin (randint indexing)": twin_sampled, f"BufferBatches.sample + algo.step{label}": ours_sampled},
                  yardstick="twin (randint indexing)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("full step with sampling from the replay buffer", r3, yardstick="twin (randint indexing)")
     return {"critic": r, "full": r2, "full_sampled": r3}
@@ -193,7 +195,8 @@ def _critic_step_fallback(algo, cfg, batch):
             from torchrl.objectives import SoftUpdate
 
         algo._bench_updater = SoftUpdate(loss, tau=cfg.q.target_tau)
-    value, _ = loss.value_loss(batch)
+    losses = getattr(algo.step, "compiled", None) or loss  # q.compile: the compiled losses
+    value, _ = losses.value_loss(batch)
     _descend(value, algo.optimisers["value"], cfg.q.grad_clip)
     algo._bench_updater.step()
     return value.detach()
@@ -205,11 +208,12 @@ def ratio_comparisons(cfg, device, iterations, rounds):
                               num_cells=rc.num_cells).to(device)
     twin_head = copy.deepcopy(net.module)
     loss = RobustDensityRatioLoss(net, alpha=rc.alpha)
-    opt = torch.optim.Adam(loss.parameters(), lr=rc.lr, weight_decay=rc.weight_decay)
+    params = list(loss.parameters())
+    opt = torch.optim.Adam(params, lr=rc.lr, weight_decay=rc.weight_decay, **adam_options(params))  # as the trainer
     twin_opt = torch.optim.Adam(twin_head.parameters(), lr=rc.lr)
     data = lqr_like_data(18_000, device).select("observation", "action")
     expert = lqr_like_data(18_000, device, seed=1).select("observation", "action")
-    sampler = PairedSampler(make_replay_buffer(data), make_replay_buffer(expert), rc.batch_size)
+    sampler = PairedBatches(make_replay_buffer(data), make_replay_buffer(expert), rc.batch_size, device=device)
     batch = sampler.sample().to(device)
     b = (batch["behaviour", "observation"], batch["behaviour", "action"])
     e = (batch["expert", "observation"], batch["expert", "action"])
@@ -245,7 +249,7 @@ def ratio_comparisons(cfg, device, iterations, rounds):
     print_comparison("ratio step: loss + backward + clip + Adam, batch 512 + 512, 2x128 network", r,
                      yardstick="twin (plain torch)")
     r2 = compare({"twin (randint indexing)": twin_sampled,
-                  "PairedSampler.sample + step": lambda: ours(sampler.sample().to(device))},
+                  "PairedBatches.sample + step": lambda: ours(sampler.sample())},
                  yardstick="twin (randint indexing)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("ratio step with sampling", r2, yardstick="twin (randint indexing)")
     return {"ratio": r, "ratio_sampled": r2}

@@ -61,9 +61,13 @@ def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", s
     """Collect the three sets (``D``, ``S^b``, ``S^e``) for ``env`` with ``seed``."""
     env = _to_dataclass(EnvConfig, env)
     if env.kind == "lqr":
+        data = _to_dataclass(LQRDataConfig, env.lqr_data)
+        storage = data.storage if storage == "lazy" else storage  # env.lqr_data.storage=memmap: buffers on disk
+        if data.dataset_dir:  # a saved dataset (e.g. a large one made once), verified on load
+            return OfflineDatasets.load(data.dataset_dir, storage=storage, scratch_dir=scratch_dir)
         return make_lqr_datasets(
             _to_dataclass(LQRConfig, env.lqr),
-            _to_dataclass(LQRDataConfig, env.lqr_data),
+            data,
             seed=seed,
             storage=storage,
             scratch_dir=scratch_dir,

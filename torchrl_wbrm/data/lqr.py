@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 
@@ -25,6 +26,10 @@ class LQRDataConfig:
         behaviour_gain_scale: behaviour ``a = -scale K x + N(0, noise^2 I)``.
         behaviour_noise_std: see above.
         parallel_envs: systems stepped at once while collecting.
+        storage: ``"lazy"`` (the sets' replay buffers in RAM) or ``"memmap"`` (``LazyMemmapStorage``, on disk).
+        dataset_dir: a dataset saved by :meth:`OfflineDatasets.save` (``recipes/make_dataset.py``) to train on instead
+            of collecting one; it is loaded (and verified) into ``storage``. The sizes and policies above are then
+            not used.
     """
 
     behaviour_episodes: int = 2000
@@ -34,6 +39,8 @@ class LQRDataConfig:
     behaviour_gain_scale: float = 0.5
     behaviour_noise_std: float = 0.5
     parallel_envs: int = 1000
+    storage: str = "lazy"
+    dataset_dir: Optional[str] = None
 
 
 def make_lqr_datasets(

@@ -31,17 +31,16 @@ To add a method: write ``build_<name>(context) -> Algo`` here, add it to :data:`
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs import ActionDiscretizer, Compose, TransformedEnv
-from torchrl.modules import MLP, ValueOperator
+from torchrl.modules import ValueOperator
 from torchrl.objectives import (
     BCLoss,
     CQLLoss,
@@ -219,23 +218,33 @@ def _bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upd
 
     ``updater`` is stepped after each actor step (``SoftUpdate``) or, with ``every_step``, after every Q step
     (``HardUpdate`` counts calls and copies every K of them).
+
+    With ``q.compile`` the two losses are :class:`~torchrl_wbrm.objectives._compiled.CompiledBellmanLosses` (the same
+    figures, computed by ``torch.compile``d functions); the optimisers and the updater stay as they are. The step
+    function then carries them as ``step.compiled`` (its ``compile_seconds``).
     """
     qc = cfg.q
+    losses = loss
+    if getattr(qc, "compile", False):
+        from torchrl_wbrm.objectives._compiled import CompiledBellmanLosses
+
+        losses = CompiledBellmanLosses(loss)
 
     def step(batch: TensorDictBase, i: int) -> dict:
-        loss_value, figures = loss.value_loss(batch)
+        loss_value, figures = losses.value_loss(batch)
         _descend(loss_value, optimisers["value"], qc.grad_clip)
         out = {"loss_value": loss_value.detach(), **_scalars(figures)}
         if updater is not None and every_step:
             updater.step()
         if i % qc.actor_delay == 0 and loss.has_actor:
-            loss_actor, _ = loss.actor_loss(batch)
+            loss_actor, _ = losses.actor_loss(batch)
             _descend(loss_actor, optimisers["actor"])
             out["loss_actor"] = loss_actor.detach()
             if updater is not None and not every_step:
                 updater.step()
         return out
 
+    step.compiled = losses if losses is not loss else None
     return step
 
 

@@ -1,0 +1,93 @@
+"""device=cuda: the hot paths run on the device with no per-step host sync. Marked ``gpu``: skipped without CUDA."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_wbrm.data import make_replay_buffer
+from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
+
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+]
+
+
+def _data(n=512):
+    from tests.test_speed import _data as data
+
+    return data(n)
+
+
+def _no_sync():
+    """Raise on any synchronising CUDA call inside the block (torch's sync debug mode)."""
+    class _Guard:
+        def __enter__(self):
+            torch.cuda.synchronize()
+            self.mode = torch.cuda.get_sync_debug_mode()
+            torch.cuda.set_sync_debug_mode("error")
+
+        def __exit__(self, *exc):
+            torch.cuda.set_sync_debug_mode(self.mode)
+
+    return _Guard()
+
+
+def test_buffer_batches_on_cuda_draw_and_gather_without_a_sync():
+    batches = BufferBatches(make_replay_buffer(_data(), batch_size=64), device="cuda")
+    batches.sample()
+    with _no_sync():
+        for _ in range(3):
+            batch = batches.sample()
+    assert batch.device.type == "cuda" and batch["observation"].device.type == "cuda"
+    paired = PairedBatches(make_replay_buffer(_data()), make_replay_buffer(_data(200)), 32, device="cuda")
+    with _no_sync():
+        pair = paired.sample()
+    assert pair["expert", "action"].device.type == "cuda"
+
+
+def test_wbrm_update_on_cuda_without_a_sync():
+    from torchrl.data import Bounded
+
+    from torchrl_wbrm.training.algos import AlgoContext, build_algo
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    cfg = WBRMConfig()
+    cfg.q.num_cells = cfg.q.actor_num_cells = [32, 32]
+    ctx = AlgoContext(cfg=cfg, observation_dim=3, action_dim=2, action_spec=Bounded(-2.0, 2.0, (2,), device="cuda"),
+                      gamma=0.9, q_initial_bias=10.0, device=torch.device("cuda"))
+    algo = build_algo("wbrm", ctx)
+    batches = BufferBatches(make_replay_buffer(_data(), batch_size=64), device="cuda")
+    algo.step(batches.sample(), 1), algo.step(batches.sample(), 2)  # warm-up (lazy CUDA init, optimiser state)
+    with _no_sync():
+        for i in range(3, 7):
+            figures = algo.step(batches.sample(), i)
+    assert all(v.device.type == "cuda" for v in figures.values())
+
+
+def test_lqr_rollout_on_cuda_equals_torchrl_rollout():
+    from torchrl.envs import EnvBase
+
+    from tests.test_speed import _NoisyLinearPolicy
+    from torchrl_wbrm.envs import LQREnv
+
+    envs = [LQREnv("exp1", batch_size=[64], device="cuda", seed=0) for _ in range(2)]
+    policy = _NoisyLinearPolicy(envs[0].riccati()[1].float().cuda())
+    outs = []
+    for env, rollout in zip(envs, (LQREnv.rollout, EnvBase.rollout)):
+        torch.manual_seed(0)
+        outs.append(rollout(env, 20, policy))
+    assert all(torch.equal(outs[0].get(k), outs[1].get(k)) for k in outs[1].keys(True, True))
+
+
+def test_trainer_runs_on_cuda(tmp_path):
+    from torchrl_wbrm.training import WBRMTrainer
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    cfg = WBRMConfig(device="cuda", plots=False)
+    cfg.env.lqr_data.behaviour_episodes, cfg.env.lqr_data.expert_episodes = 100, 50
+    cfg.ratio.steps, cfg.q.steps, cfg.q.eval_every, cfg.ratio.eval_every = 20, 20, 20, 10
+    cfg.eval.episodes = cfg.eval.train_episodes = 100
+    cfg.eval.q_samples = 500
+    results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
+    assert results["final"]
