@@ -165,10 +165,15 @@ def run_tests(tree: Path, tests: list[str], *, full: bool, timeout: int) -> tupl
 
 
 def first_failure(output: str) -> str:
-    for line in output.splitlines():
-        if line.startswith(("FAILED", "ERROR")):
-            return re.sub(r"\s+-\s.*", "", line.split(" ", 1)[1])[:110]
-    return output.strip().splitlines()[-1][:110] if output.strip() else "?"
+    """The first failing test and the first line of its error (pytest's ``E   ...``), so a reader can tell a caught
+    mutation (an assertion about the method) from a crash."""
+    lines = output.splitlines()
+    test = next((re.sub(r"\s+-\s.*", "", line.split(" ", 1)[1]) for line in lines
+                 if line.startswith(("FAILED", "ERROR"))), None)
+    error = next((line[1:].strip() for line in lines if line.startswith("E ")), "")
+    if test is None:
+        return lines[-1][:110] if lines else "?"
+    return f"{test[:110]}: {error[:150]}" if error else test[:110]
 
 
 def check_import(tree: Path) -> None:

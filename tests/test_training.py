@@ -166,9 +166,10 @@ def test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state(tmp_pa
     torch.testing.assert_close(trainer.q_buffer[:]["density_ratio"], w / w.mean(), rtol=1e-4, atol=1e-6)
 
 
-def _true_ratio_by_hand(env, observation, action, *, expert, behaviour):
-    """dP^e/dP^b at (x, a): each occupancy is the uniform mixture over the 20 steps of N(0, C_t), with C_t the
-    state-action covariances of a = −gKx + N(0, σ²I); Gaussian densities by torch.distributions."""
+def _true_ratio_by_hand(env, observation, action, *, expert, behaviour, log=False):
+    """dP^e/dP^b at (x, a) (its log with ``log``): each occupancy is the uniform mixture over the 20 steps of
+    N(0, C_t), with C_t the state-action covariances of a = −gKx + N(0, σ²I); Gaussian densities by
+    torch.distributions."""
     _, K = env.riccati()
     z = torch.cat([observation, action], -1).double()
 
@@ -178,7 +179,8 @@ def _true_ratio_by_hand(env, observation, action, *, expert, behaviour):
                             for c in covs], -1)
         return torch.logsumexp(logs, -1) - math.log(len(covs))
 
-    return (log_density(*expert) - log_density(*behaviour)).exp()
+    log_w = log_density(*expert) - log_density(*behaviour)
+    return log_w if log else log_w.exp()
 
 
 def test_unweighted_source_stores_ones(tmp_path):
@@ -191,11 +193,17 @@ def test_unweighted_source_stores_ones(tmp_path):
 def test_exact_source_stores_the_true_ratio_expert_over_behaviour(tmp_path, temper):
     """ratio.source=exact stores dP^e/dP^b (expert over behaviour, by value), shaped and self-normalised as set."""
     trainer = WBRMTrainer(tiny_config(ratio={"source": "exact", "temper": temper}), tmp_path, progress=False)
-    trainer._build_q_buffer()
-    d = trainer.q_buffer[:]
     data = trainer.cfg.env.lqr_data
     policies = dict(expert=(1 - data.expert_tau, data.expert_tau),
                     behaviour=(data.behaviour_gain_scale, data.behaviour_noise_std))
+    # the trainer's exact ratio by value, in log space (finite whichever way round it is computed), on expert and
+    # behaviour samples: log dP^e/dP^b, not its negative
+    for samples in (trainer.datasets.expert_samples[:], trainer.q_train_data):
+        log_w = trainer.true_ratio.module.log_ratio(samples["observation"], samples["action"]).reshape(-1)
+        expected = _true_ratio_by_hand(trainer.lqr_env, samples["observation"], samples["action"], log=True, **policies)
+        torch.testing.assert_close(log_w, expected, rtol=1e-6, atol=1e-6)
+    trainer._build_q_buffer()
+    d = trainer.q_buffer[:]
     w = _true_ratio_by_hand(trainer.lqr_env, d["observation"], d["action"], **policies)
     torch.testing.assert_close(d["density_ratio"].double().squeeze(-1), w**temper / (w**temper).mean(), rtol=1e-4, atol=1e-7)
     # the direction: the ratio is large where the action is near the expert's −0.95Kx and small far from it
