@@ -19,7 +19,7 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import get_original_cwd
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from torchrl_wbrm.data import make_offline_datasets
 from torchrl_wbrm.training.config import register_configs

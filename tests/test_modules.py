@@ -51,7 +51,7 @@ def test_bounded_ratio_is_one_at_zero_and_within_bounds(parameterisation):
 def test_soft_clamp_is_identity_in_log_space_near_zero_and_matches_design_formula():
     head = BoundedRatio((math.exp(-3.0), math.exp(3.0)), "soft_clamp")
     o = torch.linspace(-5, 5, 11)
-    torch.testing.assert_close(head(o), torch.exp(3.0 * torch.tanh(o / 3.0)))  # DESIGN.md's exp(c·tanh(o/c))
+    torch.testing.assert_close(head(o), torch.exp(3.0 * torch.tanh(o / 3.0)))  # w = exp(c·tanh(o/c))
     small = torch.tensor([1e-3, -1e-3])
     torch.testing.assert_close(torch.log(head(small)), small, rtol=1e-5, atol=1e-7)
 

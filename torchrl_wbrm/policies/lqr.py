@@ -11,7 +11,9 @@ would not give a Gaussian law; the gain scale and noise are configurable for any
 
 Behaviour. The paper does not give one. Default: ``a = -0.5 K x + N(0, 0.5^2 I)``: half the optimal gain and
 ten times the expert's noise, a poorer, noisier policy whose Gaussian support covers the expert's (every
-linear-Gaussian policy with positive noise does). DESIGN.md has its measured figures.
+linear-Gaussian policy with positive noise does). Its exact discounted 20-step return (unclipped reward) is
+83.11 on exp1, 83.68 on exp2 and 84.05 on exp3, against 85.39 / 85.27 / 85.12 for the expert (``policy_return``;
+``python recipes/policy_returns.py`` measures the same within its 95% CI).
 
 Under ``set_exploration_type(DETERMINISTIC)`` the policies return their mean action ``-M x`` (as torchrl's
 exploration modules do); collectors run in ``RANDOM`` mode and add the noise.

@@ -15,20 +15,18 @@ history; ``WBRMTrainer(cfg, run_dir, resume=True)`` continues from it and ends b
 from __future__ import annotations
 
 import copy
-import json
 import math
 import os
 import random
 import time
 import warnings
-from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from torchrl.data import Bounded
 from tqdm.auto import tqdm
 
