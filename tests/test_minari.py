@@ -68,9 +68,10 @@ def test_split_by_episode_and_spaces():
     assert torch.equal(again.transitions[:]["observation"], d["observation"])
 
 
-def test_round_trip_of_episodes(tmp_path):
+def test_round_trip_of_episodes(tmp_path, monkeypatch):
     episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 2, seed=3)
-    ds = write_minari_dataset("rt/pendulum-v0", episodes, data_path=tmp_path, env=PENDULUM, eval_env=PENDULUM)
+    monkeypatch.chdir(tmp_path)  # a relative data path (Minari's writer needs it made absolute)
+    ds = write_minari_dataset("rt/pendulum-v0", episodes, data_path=".", env=PENDULUM, eval_env=PENDULUM)
     td = read_minari_transitions(ds)
     assert td.shape[0] == sum(len(e["rewards"]) for e in episodes) == 400
     np.testing.assert_allclose(td["observation"][:200].numpy(), episodes[0]["observations"][:-1], rtol=1e-6)

@@ -9,6 +9,7 @@ from torchrl_wbrm.data.datasets import (
 )
 from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, cached_offline_datasets, make_offline_datasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
+from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, write_minari_dataset
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
 
 __all__ = [
@@ -24,6 +25,9 @@ __all__ = [
     "split_by_episode",
     "LQRDataConfig",
     "make_lqr_datasets",
+    "MinariDataConfig",
+    "make_minari_datasets",
+    "write_minari_dataset",
     "MountainCarDataConfig",
     "make_mountain_car_datasets",
 ]

@@ -77,10 +77,10 @@ class MinariDataConfig:
 
 def minari_data_root(data_path: str | os.PathLike | None = None) -> Path:
     """The folder Minari ids are looked up in (nothing is created)."""
-    if data_path:
-        return Path(data_path).expanduser()
+    if data_path:  # absolute: Minari's writer mis-joins a relative data path
+        return Path(data_path).expanduser().absolute()
     env_path = os.environ.get("MINARI_DATASETS_PATH")
-    return Path(env_path).expanduser() if env_path else Path.home() / ".minari" / "datasets"
+    return Path(env_path).expanduser().absolute() if env_path else Path.home() / ".minari" / "datasets"
 
 
 def _is_data_dir(path: Path) -> bool:
