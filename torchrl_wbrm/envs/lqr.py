@@ -220,7 +220,7 @@ class LQREnv(BatchedEpisodicEnv):
         >>> bool(rollout[:, -1]["next", "truncated"].all())
         True
         >>> round(env.optimal_return(), 3)  # exact, with the clip at 0
-        88.165
+        85.435
     """
 
     def __init__(
