@@ -203,6 +203,26 @@ def test_non_finite_loss_stops_the_run_and_keeps_the_last_finite_checkpoint(tmp_
     assert all(torch.isfinite(v).all() for v in ckpt["q_loss"].values() if v.is_floating_point())
 
 
+def test_non_finite_ratio_stops_the_run_in_stage_1(tmp_path):
+    results = WBRMTrainer(tiny(ratio={"lr": 1e30, "grad_clip": None}), tmp_path, progress=False).run()
+    assert results["status"] == "diverged"
+    assert results["diverged"]["stage"] == "ratio" and "density_ratio" in results["diverged"]["figure"]
+    assert strict_json(tmp_path / "results.json")["diverged"]["step"] == results["diverged"]["step"]
+
+
+def test_run_with_a_damaged_cache_entry_trains_on_rebuilt_data(tmp_path):
+    cache = tmp_path / "cache"
+    first = WBRMTrainer(tiny(data_cache=str(cache)), tmp_path / "r1", progress=False)
+    (entry,) = [p for p in cache.iterdir() if not p.name.startswith(".")]
+    os.truncate(entry / "transitions" / "observation.memmap", 0)
+    os.truncate(entry / "transitions" / "next" / "reward.memmap", 1000)
+    with pytest.warns(UserWarning, match=r"failed verification and is rebuilt"):
+        second = WBRMTrainer(tiny(data_cache=str(cache)), tmp_path / "r2", progress=False)
+    for key in ("observation", ("next", "reward")):
+        assert torch.equal(second.q_train_data[key], first.q_train_data[key])
+    assert (second.q_train_data["observation"] != 0).all()
+
+
 def test_recipe_exits_non_zero_on_divergence(tmp_path, monkeypatch, capsys):
     import runpy
 

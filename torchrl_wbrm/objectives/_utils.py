@@ -8,6 +8,15 @@ from tensordict.utils import NestedKey
 _REDUCTIONS = ("mean", "sum", "none")
 
 
+class NonFiniteError(ValueError):
+    """An entry holds NaN or ±inf; ``key`` names it. A ValueError, so callers that catch those still do; the trainer
+    reads it during training as a divergence (a network's output, since the data are verified finite)."""
+
+    def __init__(self, message: str, key: NestedKey) -> None:
+        super().__init__(message)
+        self.key = key
+
+
 def check_reduction(reduction: str | None) -> str:
     """``None`` means ``"mean"``; anything outside ``("mean", "sum", "none")`` is a ValueError."""
     if reduction is None:
@@ -60,7 +69,9 @@ def check_sign(value: torch.Tensor, key: NestedKey, *, strictly_positive: bool) 
     expected = "strictly positive" if strictly_positive else "non-negative"
     message = f"Entry {key!r} must be finite and {expected}."
     if not bool(ok):
-        raise ValueError(f"{message} Got min {value.min().item():.4g}, max {value.max().item():.4g}.")
+        error = NonFiniteError if not bool(torch.isfinite(value).all()) else ValueError
+        args = (key,) if error is NonFiniteError else ()
+        raise error(f"{message} Got min {value.min().item():.4g}, max {value.max().item():.4g}.", *args)
 
 
 def check_not_empty(batch_size: torch.Size, what: str) -> None:
@@ -76,7 +87,7 @@ def check_finite(value: torch.Tensor, key: NestedKey) -> None:
     finite = torch.isfinite(value)
     if not bool(finite.all()):
         bad = int((~finite).sum())
-        raise ValueError(f"Entry {key!r} holds {bad} non-finite value(s) (NaN or inf) of {value.numel()}.")
+        raise NonFiniteError(f"Entry {key!r} holds {bad} non-finite value(s) (NaN or inf) of {value.numel()}.", key)
 
 
 def check_all_finite(entries: dict) -> None:

@@ -53,6 +53,7 @@ from torchrl_wbrm.training.algos import Algo, AlgoContext, adam_options, build_a
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.logging import configure_console, log_run_summary
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
+from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.guards import (
     RunInterrupted,
     StopSignals,
@@ -317,7 +318,10 @@ class WBRMTrainer:
         finished_early = False
         try:
             for step in range(start + 1, stop + 1):
-                figures = step_fn(step)
+                try:
+                    figures = step_fn(step)
+                except NonFiniteError as err:  # a network's output turned NaN/inf inside a loss's input checks
+                    raise TrainingDiverged(name, step, str(err.key), float("nan")) from err
                 bad = first_non_finite(figures)
                 if bad is not None:  # nothing of this step is checkpointed
                     raise TrainingDiverged(name, step, bad[0], bad[1])
