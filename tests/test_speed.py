@@ -233,3 +233,13 @@ def test_lqr_rollout_other_arguments_take_torchrl_path():
     out = env.rollout(45, break_when_any_done=False)  # random actions, auto-reset after 20 steps
     assert out.shape == (2, 45)
     assert bool(out["next", "truncated"][:, 19].all()) and not bool(out["next", "truncated"][:, 20].any())
+
+
+def test_trainer_divergence_check_on_cpu_is_first_non_finite(tmp_path):
+    from tests.test_training import tiny_config
+    from torchrl_wbrm.training import WBRMTrainer
+
+    trainer = WBRMTrainer(tiny_config(), tmp_path / "run", progress=False)
+    assert trainer._non_finite_figure({"loss": torch.tensor(1.0)}, read=False) is None
+    name, value = trainer._non_finite_figure({"a": torch.tensor(1.0), "loss": torch.tensor(float("inf"))}, read=False)
+    assert name == "loss" and value == float("inf")

@@ -91,3 +91,20 @@ def test_trainer_runs_on_cuda(tmp_path):
     cfg.eval.q_samples = 500
     results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
     assert results["final"]
+
+
+def test_trainer_divergence_check_on_cuda_reads_the_device_only_on_check_steps(tmp_path):
+    from torchrl_wbrm.training import WBRMTrainer
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    cfg = WBRMConfig(device="cuda", plots=False)
+    cfg.env.lqr_data.behaviour_episodes, cfg.env.lqr_data.expert_episodes = 100, 50
+    cfg.eval.q_samples = 500
+    trainer = WBRMTrainer(cfg, tmp_path / "run", progress=False)
+    good = {"loss": torch.tensor(1.0, device="cuda")}
+    bad = {"loss": torch.tensor(float("nan"), device="cuda")}
+    with _no_sync():
+        assert trainer._non_finite_figure(good, read=False) is None
+        assert trainer._non_finite_figure(bad, read=False) is None  # not read yet
+    assert trainer._non_finite_figure(good, read=True) is not None  # the window held a NaN
+    assert trainer._non_finite_figure(good, read=True) is None

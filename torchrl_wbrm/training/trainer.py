@@ -322,7 +322,10 @@ class WBRMTrainer:
                     figures = step_fn(step)
                 except NonFiniteError as err:  # a network's output turned NaN/inf inside a loss's input checks
                     raise TrainingDiverged(name, step, str(err.key), float("nan")) from err
-                bad = first_non_finite(figures)
+                read = (step % log_every == 0 or step == stop or step % eval_every == 0 or step == total_steps
+                        or bool(ckpt_every and step % ckpt_every == 0)
+                        or (self._stop is not None and self._stop.received is not None))
+                bad = self._non_finite_figure(figures, read=read)
                 if bad is not None:  # nothing of this step is checkpointed
                     raise TrainingDiverged(name, step, bad[0], bad[1])
                 self.state["step"] = step
@@ -345,6 +348,28 @@ class WBRMTrainer:
         finally:
             bar.close()
         return finished_early or self.state["step"] >= total_steps
+
+    def _non_finite_figure(self, figures: dict, *, read: bool) -> tuple[str, float] | None:
+        """The divergence check of a step's figures: :func:`first_non_finite` on CPU (a host read costs nothing
+        there). On an accelerator a device-side "all finite so far" flag is accumulated without a host sync and read
+        (one sync) only when ``read`` (log, evaluation and checkpoint steps, the last step, a stop signal), so a
+        divergence is caught at the next such step, before anything after it is logged or checkpointed; it names
+        that step's first non-finite figure (a NaN persists), or the window's if they are finite again."""
+        if self.device.type == "cpu":
+            return first_non_finite(figures)
+        values = [v.detach().reshape(()).float() for v in figures.values()
+                  if isinstance(v, torch.Tensor) and v.numel() == 1 and (v.is_floating_point() or v.is_complex())]
+        flag = self.__dict__.get("_finite_flag")
+        if values:
+            ok = torch.isfinite(torch.stack(values)).all()
+            flag = ok if flag is None else flag & ok
+        self._finite_flag = flag
+        if not read or flag is None:
+            return None
+        self._finite_flag = None
+        if bool(flag):
+            return None
+        return first_non_finite(figures) or ("a figure of the steps since the last check", float("nan"))
 
     def _log(self, scalars: dict[str, float], step: int) -> None:
         if self.logger is not None:
