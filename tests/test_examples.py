@@ -1,0 +1,121 @@
+"""The examples/ scripts run (``--quick``) and learn: each asserts an outcome against a computed reference, with a
+margin, not only that the script finished.
+
+All four run in one subprocess (one interpreter start and one torch/torchrl import instead of four), each through
+``runpy`` as ``python examples/<name>.py --quick`` would run it; their printed output is parsed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.references import reference_regrets
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr"]
+
+DRIVER = """
+import contextlib, io, json, runpy, sys, time
+out, log_dir, names = {}, sys.argv[1], sys.argv[2:]
+for name in names:
+    sys.argv = [f"examples/{name}.py", "--quick", "--log-dir", f"{log_dir}/{name}"]
+    buffer, t0 = io.StringIO(), time.process_time()
+    with contextlib.redirect_stdout(buffer):
+        runpy.run_path(f"examples/{name}.py", run_name="__main__")
+    out[name] = {"stdout": buffer.getvalue(), "cpu_seconds": time.process_time() - t0}
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def outputs(tmp_path_factory):
+    log_dir = tmp_path_factory.mktemp("example_logs")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "-c", DRIVER, str(log_dir), *EXAMPLES], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name, run in result.items():
+        print(f"{name}: {run['cpu_seconds']:.1f} s CPU\n{run['stdout']}")
+        assert any((log_dir / name).rglob("*.csv")), f"{name} wrote no CSV log"  # TorchRL's CSVLogger was used
+    return {name: run["stdout"] for name, run in result.items()}
+
+
+def _figure(text: str, label: str, what: str = "regret") -> float:
+    match = re.search(rf"^{re.escape(label)}\s+.*?{what}\s+(-?[0-9.]+)", text, re.MULTILINE)
+    assert match, (label, text)
+    return float(match.group(1))
+
+
+@pytest.fixture(scope="module")
+def regrets():
+    """Exact regrets of reference policies on LQR exp1: the behaviour mean ``a = −0.5Kx`` and the zero action."""
+    return reference_regrets("exp1")
+
+
+def test_weighted_td3bc_learns(outputs, regrets):
+    """TorchRL's TD3BCLoss with ŵ as priority_weight: the quick run's regret is below half the zero action's (the
+    actor starts at a ≈ 0). It learns slowly: TD3+BC's cloning term (an unweighted batch mean in TorchRL) pulls the
+    actor towards the behaviour mean a = −0.5Kx, whose exact regret the script prints beside it."""
+    text = outputs["weighted_td3bc_lqr"]
+    weighted = _figure(text, "ŵ-weighted TD3+BC")
+    assert weighted < regrets["zero_action"] / 2, weighted
+    assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
+
+
+def test_wbrm_in_a_ddpg_loop_beats_the_behaviour_policy(outputs, regrets):
+    """WeightedBellmanLoss as the critic loss of an offline DDPG loop: regret below half the behaviour mean's."""
+    regret = _figure(outputs["wbrm_ddpg_lqr"], "WBRM (DDPG loop)")
+    assert regret < regrets["behaviour_mean"] / 2, regret
+
+
+def test_discrete_wbrm_on_cartpole_beats_the_behaviour_data(outputs):
+    """WeightedBellmanLoss with a QValueActor: the greedy policy's return is at least twice the behaviour data's;
+    TorchRL's DQNLoss on the same data is reported beside it and beats the data too."""
+    text = outputs["wbrm_dqn_cartpole"]
+    behaviour = float(re.search(r"behaviour return ([0-9.]+)", text).group(1))
+    wbrm = _figure(text, "WeightedBellmanLoss", "greedy return")
+    dqn = _figure(text, "DQNLoss", "greedy return")
+    assert behaviour < 100 and wbrm > 2 * behaviour and dqn > behaviour, (behaviour, wbrm, dqn)
+
+
+def test_weighted_ddpg_learns(outputs, regrets):
+    """TorchRL's DDPGLoss with ŵ as priority_weight: regret below half the behaviour mean's."""
+    weighted = _figure(outputs["weighted_ddpg_lqr"], "ŵ-weighted DDPG")
+    assert weighted < regrets["behaviour_mean"] / 2, weighted
+
+
+def test_every_example_is_tested():
+    assert sorted(p.stem for p in (ROOT / "examples").glob("*.py")) == sorted(EXAMPLES)
+
+
+def test_examples_use_only_public_api():
+    """No private names of this package (``torchrl_wbrm.x._y`` or ``from torchrl_wbrm... import _y``)."""
+    for path in (ROOT / "examples").glob("*.py"):
+        text = path.read_text()
+        assert not re.search(r"torchrl_wbrm[\w.]*\._\w", text), path
+        assert not re.search(r"from torchrl_wbrm[\w.]* import [^\n]*\b_\w", text), path
+        imports = re.findall(r"^from (torchrl_wbrm[\w.]*) import", text, re.MULTILINE)
+        assert imports and all(m.count(".") == 1 for m in imports), (path, imports)  # package-level names
+
+
+def test_the_readme_shows_what_the_example_prints(outputs):
+    """README's output block of examples/wbrm_ddpg_lqr.py is what the quick run printed: the same lines, each figure
+    within 0.003 (another CPU may round the last digits of a float computation differently)."""
+    readme = (ROOT / "README.md").read_text()
+    shown = re.search(r"<!-- example-output: wbrm_ddpg_lqr -->\n```\n(.*?)```\n<!-- /example-output -->", readme,
+                      re.DOTALL)
+    assert shown, "README lacks the example-output block"
+    number = r"-?\d+\.\d+"
+    expected, got = shown.group(1).strip().splitlines(), outputs["wbrm_ddpg_lqr"].strip().splitlines()
+    assert len(expected) == len(got), (expected, got)
+    for want, have in zip(expected, got):
+        assert re.sub(number, "#", want) == re.sub(number, "#", have), (want, have)
+        for a, b in zip(re.findall(number, want), re.findall(number, have)):
+            assert abs(float(a) - float(b)) <= 3e-3, (want, have)
