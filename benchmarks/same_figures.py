@@ -13,59 +13,28 @@ the same numbers) and how far 3 moves from them (fused Adam rounds in another or
 """
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
-from contextlib import ExitStack
 from pathlib import Path
-from unittest import mock
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _old_paths import old_paths  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(overrides, *, shortcuts: bool, fused: bool, run_dir: Path) -> dict:
     from hydra import compose, initialize_config_dir
-    from torchrl.envs import EnvBase
-    from torchrl.objectives import SoftUpdate
 
-    from torchrl_wbrm.data.datasets import PairedSampler
-    from torchrl_wbrm.envs import LQREnv
-    from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
-    from torchrl_wbrm.training import WBRMTrainer, algos, register_configs, trainer as trainer_module
+    from torchrl_wbrm.training import WBRMTrainer, register_configs
 
     register_configs()
     with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=["logger=none", "plots=false", *overrides])
-    with ExitStack() as stack:
-        if not fused:
-            stack.enter_context(mock.patch.object(algos, "adam_options", lambda params: {}))
-            stack.enter_context(mock.patch.object(trainer_module, "adam_options", lambda params: {}))
-        if not shortcuts:
-            stack.enter_context(mock.patch.object(WeightedBellmanLoss, "fast_path", False))
-            stack.enter_context(mock.patch.object(RobustDensityRatioLoss, "fast_path", False))
-            stack.enter_context(mock.patch.object(algos, "ForeachSoftUpdate", SoftUpdate))
-            stack.enter_context(mock.patch.object(LQREnv, "rollout", EnvBase.rollout))
-
-            class _Plain:  # the replay buffer's own sample(), moved to the device
-                def __init__(self, buffer, device):
-                    self.buffer, self.device = buffer, device
-
-                def sample(self):
-                    return self.buffer.sample().to(self.device)
-
-            stack.enter_context(mock.patch.object(
-                trainer_module, "PairedBatches", lambda b, e, n, device=None: _PairedOnDevice(PairedSampler(b, e, n), device)))
-            stack.enter_context(mock.patch.object(trainer_module.WBRMTrainer, "_q_batches",
-                                                  lambda self: _Plain(self.q_buffer, self.device)))
+    with old_paths(shortcuts=shortcuts, fused=fused):
         trainer = WBRMTrainer(cfg, run_dir, progress=False)
         return trainer.run()["final"]
-
-
-class _PairedOnDevice:
-    def __init__(self, sampler, device):
-        self.sampler, self.device = sampler, device
-
-    def sample(self):
-        return self.sampler.sample().to(self.device)
 
 
 def main(argv=None):
