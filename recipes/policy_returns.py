@@ -36,7 +36,7 @@ def dqn_grid_regret(bins: list[int], *, episodes: int, seed: int) -> None:
 
     from torchrl_wbrm.evaluation import lqr_paired_regret
     from torchrl_wbrm.policies import make_lqr_optimal_policy
-    from torchrl_wbrm.training.algos import ActionGrid
+    from torchrl_wbrm.modules import ActionGrid
 
     if not bins:
         return

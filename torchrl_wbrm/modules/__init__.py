@@ -1,6 +1,8 @@
-"""Network builders: Q networks, fixed polynomial features, a bounded actor, the positive bounded density-ratio network, action maximisers."""
+"""Network builders: Q networks, fixed polynomial features, a bounded actor, the positive bounded density-ratio network,
+action maximisers, the action grid of a discretised box."""
 from __future__ import annotations
 
+from torchrl_wbrm.modules.action_grid import ActionGrid
 from torchrl_wbrm.modules.density_ratio import (
     DEFAULT_PARAMETERISATION,
     PARAMETERISATIONS,
@@ -31,6 +33,7 @@ from torchrl_wbrm.modules.networks import (
 
 __all__ = [
     "ACTIVATIONS",
+    "ActionGrid",
     "ActionMaximiser",
     "EnsembleReduction",
     "NormalisedMLP",

@@ -37,9 +37,7 @@ from typing import Callable
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
-from torch import nn
 from torchrl.data import Bounded
-from torchrl.envs import ActionDiscretizer, Compose, TransformedEnv
 from torchrl.modules import ValueOperator
 from torchrl.objectives import (
     BCLoss,
@@ -53,8 +51,8 @@ from torchrl.objectives import (
     TD3BCLoss,
 )
 
-from torchrl_wbrm.envs import make_lqr_env
 from torchrl_wbrm.policies import make_mountain_car_env
+from torchrl_wbrm.modules import ActionGrid  # re-exported here (it lived here before modules/)
 from torchrl_wbrm.modules import (
     PolynomialFeatures,
     build_mlp,
@@ -419,54 +417,6 @@ def build_iql(ctx: AlgoContext) -> Algo:
 
 
 # ---------------------------------------------------------------------- discrete actions
-class ActionGrid(nn.Module):
-    """The joint action grid of a discretised box: ``num_bins`` values per coordinate, ``num_bins ** m`` actions.
-
-    The values are those of torchrl's ``ActionDiscretizer`` (bin medians) on the LQR env
-    (``make_lqr_env(..., discretize_actions=num_bins)``), read from the transform, so the grid is the env's own.
-    That transform yields one categorical per coordinate (a ``MultiCategorical``); a DQN head needs one categorical
-    over the joint actions, indexed ``k = Σ_j i_j · n^(m−1−j)`` (coordinate 0 most significant).
-
-    ``index(action)`` snaps continuous actions to the nearest grid point per coordinate and returns the joint index
-    (the dataset's actions -> DQN's); ``forward(index)`` returns the continuous action of a joint index (DQN's greedy
-    action -> the env).
-    """
-
-    def __init__(self, values: torch.Tensor) -> None:
-        super().__init__()
-        self.register_buffer("values", values)  # [m, n]
-        m, n = values.shape
-        self.register_buffer("radix", n ** torch.arange(m - 1, -1, -1))
-
-    @classmethod
-    def from_lqr_env(cls, lqr_config, num_bins: int) -> "ActionGrid":
-        return cls.from_env(make_lqr_env(lqr_config).base_env, num_bins)
-
-    @classmethod
-    def from_env(cls, env, num_bins: int) -> "ActionGrid":
-        """The grid of torchrl's ``ActionDiscretizer(num_bins)`` (bin medians) on ``env``'s bounded action spec."""
-        discretised = TransformedEnv(env, ActionDiscretizer(int(num_bins), categorical=True,
-                                                            sampling=ActionDiscretizer.SamplingStrategy.MEDIAN))
-        _ = discretised.action_spec  # the transform builds its grid from the parent's spec
-        transform = discretised.transform
-        transform = transform[-1] if isinstance(transform, Compose) else transform
-        return cls(transform.intervals.detach().clone().float().reshape(-1, int(num_bins)))
-
-    @property
-    def num_actions(self) -> int:
-        return int(self.values.shape[1] ** self.values.shape[0])
-
-    def index(self, action: torch.Tensor) -> torch.Tensor:
-        per_coordinate = (action.unsqueeze(-1) - self.values).abs().argmin(-1)  # [*B, m]
-        return (per_coordinate * self.radix).sum(-1)
-
-    def forward(self, index: torch.Tensor) -> torch.Tensor:
-        index = index.reshape(index.shape[:-1] if index.ndim and index.shape[-1] == 1 else index.shape)
-        per_coordinate = (index.unsqueeze(-1) // self.radix) % self.values.shape[1]  # [*B, m]
-        return torch.gather(self.values.expand(*per_coordinate.shape[:-1], *self.values.shape), -1,
-                            per_coordinate.unsqueeze(-1)).squeeze(-1)
-
-
 def build_dqn(ctx: AlgoContext) -> Algo:
     """DQN (V. Mnih et al., "Human-level control through deep reinforcement learning", Nature 2015), offline, on the
     discretised action box (LQR: ``num_bins ** 2`` joint actions; MountainCar: ``num_bins``).
