@@ -344,16 +344,40 @@ class LQREnv(BatchedEpisodicEnv):
             return super().rollout(max_steps, policy, callback, **kwargs)
         tensordict = self.reset()
         steps = min(int(max_steps), self.config.horizon)
-        tensordicts = []
-        for i in range(steps):
-            tensordict.update(policy(tensordict))
+        keys, columns = None, None
+        for _ in range(steps):
+            out = policy(tensordict)
+            if out is not tensordict:  # (updating a TensorDict with itself changes nothing)
+                tensordict.update(out)
             tensordict.set("next", self._step(tensordict))
             next_td = self._step_mdp(tensordict)
-            tensordicts.append(tensordict.copy())
+            step_keys = list(tensordict.keys(True, True))
+            if keys is None:
+                keys, columns = step_keys, [[] for _ in step_keys]
+            elif step_keys != keys and set(step_keys) != set(keys):  # a policy writing other entries at some steps
+                self._stack_mismatch(keys, step_keys)
+            for column, key in zip(columns, keys):
+                column.append(tensordict.get(key))
             tensordict = next_td
-        out = torch.stack(tensordicts, len(self.batch_size))
-        out.refine_names(..., "time")
-        return out
+        # torch.stack of the steps' TensorDicts, entry by entry (the same tensors, without its per-call checks)
+        dim = len(self.batch_size)
+        nested: dict = {}
+        for key, column in zip(keys, columns):
+            *parents, leaf = key if isinstance(key, tuple) else (key,)
+            node = nested
+            for parent in parents:
+                node = node.setdefault(parent, {})
+            node[leaf] = torch.stack(column, dim)
+        result = TensorDict(nested, batch_size=(*self.batch_size, steps), device=self.device)
+        result.refine_names(..., "time")
+        return result
+
+    @staticmethod
+    def _stack_mismatch(keys, step_keys):
+        raise RuntimeError(
+            f"The sets of keys in the tensordicts to stack are exclusive: a step wrote {sorted(map(str, step_keys))}, "
+            f"the first step {sorted(map(str, keys))}."
+        )
 
     # ------------------------------------------------------------------ exact solution
     def riccati(self) -> tuple[torch.Tensor, torch.Tensor]:
