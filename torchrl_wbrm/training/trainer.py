@@ -2,7 +2,9 @@
 
 Stage 1 fits ŵ with :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` on S^b and S^e, with a held-out split
 for early stopping; ŵ is then computed *once* over D and stored in D's replay buffer under ``"density_ratio"``
-(optionally shaped and self-normalised), never recomputed per batch. Stage 2 trains Q (and the actor) with
+(optionally shaped and self-normalised), never recomputed per batch. Both are :mod:`torchrl_wbrm.ratio`'s public
+pieces (:class:`~torchrl_wbrm.ratio.DensityRatioFitter`, stepped and evaluated from this trainer's loop, and
+:func:`~torchrl_wbrm.ratio.store_density_ratio`), which a script can use without a trainer. Stage 2 trains Q (and the actor) with
 :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's ``SoftUpdate`` and periodic evaluation.
 
 Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.training.algos` builds each
