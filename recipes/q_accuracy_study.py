@@ -37,22 +37,6 @@ STUDY_BUDGET = [
     "plots=false",
     "checkpoint_every=0",
 ]
-QUICK_BUDGET = [
-    "env.lqr_data.behaviour_episodes=60",
-    "env.lqr_data.expert_episodes=30",
-    "env.lqr_data.parallel_envs=30",
-    "ratio.steps=20",
-    "ratio.eval_every=10",
-    "q.steps=20",
-    "q.eval_every=20",
-    "q.num_cells=[16,16]",
-    "q.actor_num_cells=[16,16]",
-    "eval.episodes=50",
-    "eval.q_samples=300",
-    "logger=none",
-    "plots=false",
-    "checkpoint_every=0",
-]
 DEFAULT = "default"
 #: block -> {level: overrides}; the recipe's default is the level named ``DEFAULT`` of every block (run once)
 BLOCKS: dict[str, dict[str, list[str]]] = {
@@ -295,8 +279,9 @@ def main() -> None:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, 'mountain_car']}")
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
+    from torchrl_wbrm.training.runs import QUICK_BUDGET, run_cells
+
     budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
-    from torchrl_wbrm.training.runs import run_cells
 
     cells = build_cells(args.quick, args.blocks, args.systems, args.factor_systems)
     for seeds in sorted({1 if args.quick else c["seeds"] for c in cells}, reverse=True):  # the defaults first

@@ -37,22 +37,6 @@ STUDY_BUDGET = [
     "plots=false",
     "checkpoint_every=0",
 ]
-QUICK_BUDGET = [
-    "env.lqr_data.behaviour_episodes=60",
-    "env.lqr_data.expert_episodes=30",
-    "env.lqr_data.parallel_envs=30",
-    "ratio.steps=20",
-    "ratio.eval_every=10",
-    "q.steps=20",
-    "q.eval_every=20",
-    "q.num_cells=[16,16]",
-    "q.actor_num_cells=[16,16]",
-    "eval.episodes=50",
-    "eval.q_samples=300",
-    "logger=none",
-    "plots=false",
-    "checkpoint_every=0",
-]
 
 WEIGHTING = {
     "unweighted": ["ratio.source=none"],
@@ -189,8 +173,9 @@ def main() -> None:
     out = Path(args.out)
     cells = build_cells(args.quick)
     seeds = range(1 if args.quick else args.seeds)
+    from torchrl_wbrm.training.runs import QUICK_BUDGET, run_cells
+
     budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
-    from torchrl_wbrm.training.runs import run_cells
 
     run_cells(cells, seeds, budget, out, jobs=args.jobs)
     text = tables(out)

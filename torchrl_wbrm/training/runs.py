@@ -5,7 +5,25 @@ import json
 import os
 from pathlib import Path
 
-__all__ = ["cell_dir", "run_cell", "run_cells", "run_overrides"]
+__all__ = ["QUICK_BUDGET", "cell_dir", "run_cell", "run_cells", "run_overrides"]
+
+#: The studies' smoke budget (``--quick``, run in CI): tiny LQR data, networks, budgets and evaluations.
+QUICK_BUDGET = [
+    "env.lqr_data.behaviour_episodes=60",
+    "env.lqr_data.expert_episodes=30",
+    "env.lqr_data.parallel_envs=30",
+    "ratio.steps=20",
+    "ratio.eval_every=10",
+    "q.steps=20",
+    "q.eval_every=20",
+    "q.num_cells=[16,16]",
+    "q.actor_num_cells=[16,16]",
+    "eval.episodes=50",
+    "eval.q_samples=300",
+    "logger=none",
+    "plots=false",
+    "checkpoint_every=0",
+]
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
