@@ -71,7 +71,7 @@ def main(argv=None):
 
         policy = LinearPolicy(K)
 
-        iterations = max(1, min(50, 200_000 // (B * 20) + 1))
+        iterations = max(3, min(50, 400_000 // (B * 20) + 1))
         out = compare(
             {"pure torch": lambda: pure_torch_rollout(env, K, g), "LQREnv.rollout": lambda: env.rollout(20, policy)},
             yardstick="pure torch", iterations=iterations, rounds=args.rounds, warmup=3, sync=sync,
