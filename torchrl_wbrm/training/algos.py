@@ -216,23 +216,33 @@ def _bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upd
 
     ``updater`` is stepped after each actor step (``SoftUpdate``) or, with ``every_step``, after every Q step
     (``HardUpdate`` counts calls and copies every K of them).
+
+    With ``q.compile`` the two losses are :class:`~torchrl_wbrm.objectives._compiled.CompiledBellmanLosses` (the same
+    figures, computed by ``torch.compile``d functions); the optimisers and the updater stay as they are. The step
+    function then carries them as ``step.compiled`` (its ``compile_seconds``).
     """
     qc = cfg.q
+    losses = loss
+    if getattr(qc, "compile", False):
+        from torchrl_wbrm.objectives._compiled import CompiledBellmanLosses
+
+        losses = CompiledBellmanLosses(loss)
 
     def step(batch: TensorDictBase, i: int) -> dict:
-        loss_value, figures = loss.value_loss(batch)
+        loss_value, figures = losses.value_loss(batch)
         _descend(loss_value, optimisers["value"], qc.grad_clip)
         out = {"loss_value": loss_value.detach(), **_scalars(figures)}
         if updater is not None and every_step:
             updater.step()
         if i % qc.actor_delay == 0 and loss.has_actor:
-            loss_actor, _ = loss.actor_loss(batch)
+            loss_actor, _ = losses.actor_loss(batch)
             _descend(loss_actor, optimisers["actor"])
             out["loss_actor"] = loss_actor.detach()
             if updater is not None and not every_step:
                 updater.step()
         return out
 
+    step.compiled = losses if losses is not loss else None
     return step
 
 
