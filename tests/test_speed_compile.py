@@ -88,3 +88,17 @@ def test_trainer_with_q_compile_keeps_its_cache_in_the_run_directory(tmp_path, m
     assert results["compile_seconds"] > 0
     assert (run_dir / "torch_compile_cache").is_dir() and any((run_dir / "torch_compile_cache").iterdir())
     assert results["final"]["q_error_expert"] == results["final"]["q_error_expert"]  # a number (not NaN)
+
+
+def test_q_compile_reaches_the_bellman_step():
+    """q.compile=true gives the step compiled losses (building them compiles nothing yet: torch.compile is lazy)."""
+    from torchrl_wbrm.training.algos import AlgoContext, build_algo
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    for compile_, expected in ((True, CompiledBellmanLosses), (False, type(None))):
+        cfg = WBRMConfig()
+        cfg.q.compile = compile_
+        cfg.q.num_cells = cfg.q.actor_num_cells = [8]
+        algo = build_algo("wbrm", AlgoContext(cfg=cfg, observation_dim=3, action_dim=2, action_spec=SPEC, gamma=0.9,
+                                              q_initial_bias=0.0))
+        assert isinstance(algo.step.compiled, expected)
