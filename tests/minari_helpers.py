@@ -2,9 +2,11 @@
 on them with the wandb logger (memoised in this module, so the two test files share one run)."""
 from __future__ import annotations
 
+import atexit
 import functools
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -32,7 +34,10 @@ GROUP = "test_minari_group"
 
 @functools.lru_cache(maxsize=None)
 def session_dir() -> Path:
-    return Path(tempfile.mkdtemp(prefix="wbrm_minari_tests_"))
+    """A temporary folder for the session's datasets and run, removed when the test process exits."""
+    path = Path(tempfile.mkdtemp(prefix="wbrm_minari_tests_"))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
 
 
 @functools.lru_cache(maxsize=None)
