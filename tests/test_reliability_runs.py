@@ -40,7 +40,8 @@ def tiny(**overrides) -> WBRMConfig:
     base = {
         "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
         "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
-        "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
+        "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16],
+              "lr_schedule": "constant"},  # a budget can grow only under a constant rate (see the cosine test)
         "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 400},
         "logger": {"backend": "", "log_every": 5},
         "checkpoint_every": 10,
@@ -126,6 +127,16 @@ def test_resume_accepts_continuable_keys_and_reevaluates(finished, tmp_path):
     # a larger budget continues training
     results = WBRMTrainer(tiny(q={"steps": 60}), run, progress=False, resume=True).run()
     assert results["final"]["step"] == 60
+
+
+def test_resume_refuses_a_new_budget_under_a_cosine_schedule(tmp_path):
+    """The cosine schedule's horizon is q.steps (and torch's cosine rises again past it): a run on that schedule
+    cannot be extended, only restarted."""
+    WBRMTrainer(tiny(q={"steps": 20, "eval_every": 20, "lr_schedule": "cosine"}), tmp_path, progress=False).run()
+    before = snapshot(tmp_path)
+    with pytest.raises(ValueError, match=r"q.steps: 20 -> 40.*not with an lr schedule"):
+        WBRMTrainer(tiny(q={"steps": 40, "eval_every": 20, "lr_schedule": "cosine"}), tmp_path, progress=False, resume=True)
+    assert snapshot(tmp_path) == before
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "not_a_checkpoint"])
