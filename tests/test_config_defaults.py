@@ -11,7 +11,7 @@ from torchrl_wbrm.training.config import WBRMConfig, register_configs
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 #: set by the YAML on purpose (its comments say why): none of them changes the method
-BY_DESIGN = {"threads": 1}
+INTENDED = {"threads": 1}
 
 
 def _flat(tree, prefix=""):
@@ -33,11 +33,11 @@ def test_the_recipe_yaml_composes_to_the_schema_defaults():
     schema = _flat(OmegaConf.to_container(OmegaConf.structured(WBRMConfig())))
     assert recipe.keys() == schema.keys()
     differences = {key: (schema[key], recipe[key]) for key in schema if schema[key] != recipe[key]}
-    assert differences == {key: (schema[key], value) for key, value in BY_DESIGN.items()}, differences
+    assert differences == {key: (schema[key], value) for key, value in INTENDED.items()}, differences
 
 
 def test_the_yaml_sets_only_its_by_design_values():
     """Every value the top-level YAML sets (outside its defaults list and Hydra's own section) is listed above."""
     top = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "wbrm_offline.yaml"))
     top.pop("defaults"), top.pop("hydra")
-    assert _flat(top) == BY_DESIGN
+    assert _flat(top) == INTENDED
