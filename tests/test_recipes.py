@@ -82,10 +82,16 @@ def test_wbrm_offline_wandb_offline(tmp_path):
 
 
 def test_wbrm_offline_resume_continues_exactly(tmp_path):
+    # a larger budget continues a constant learning rate; a cosine schedule's length is its budget, so there a larger
+    # q.steps on resume is refused (tests/test_reliability*.py)
     a, b = tmp_path / "a", tmp_path / "b"
-    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=30", "checkpoint_every=10", f"hydra.run.dir={a}", "plots=false")
-    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=20", "checkpoint_every=10", f"hydra.run.dir={b}", "plots=false")
-    run_recipe("wbrm_offline.py", *TINY_LQR, "q.steps=30", "checkpoint_every=10", f"resume={b}", "plots=false")
+    constant = "q.lr_schedule=constant"
+    run_recipe("wbrm_offline.py", *TINY_LQR, constant, "q.steps=30", "checkpoint_every=10", f"hydra.run.dir={a}",
+               "plots=false")
+    run_recipe("wbrm_offline.py", *TINY_LQR, constant, "q.steps=20", "checkpoint_every=10", f"hydra.run.dir={b}",
+               "plots=false")
+    run_recipe("wbrm_offline.py", *TINY_LQR, constant, "q.steps=30", "checkpoint_every=10", f"resume={b}",
+               "plots=false")
     ca = torch.load(a / "checkpoint.pt", weights_only=False)["q_loss"]
     cb = torch.load(b / "checkpoint.pt", weights_only=False)["q_loss"]
     assert all(torch.equal(ca[k], cb[k]) for k in ca)

@@ -109,7 +109,9 @@ class QConfig:
             (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
         value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
         normalise_observations: feed every network ``(x − mean) / std`` of D's observations (a fixed input layer).
-        lr_schedule: ``"constant"`` or ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser).
+        lr_schedule: ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser; the default: on
+            LQR exp1 it cut the paired regret from 0.0075 to 0.0034 and lowered the held-out Bellman residual,
+            ``recipes/q_accuracy_study.py``) or ``"constant"``.
         steps, batch_size, lr, actor_lr: the optimisers' budget (Adam).
         target_tau: SoftUpdate's τ.
         actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
@@ -139,7 +141,7 @@ class QConfig:
     ensemble_reduction: str = "mean"
     value_scale: float = 1.0
     normalise_observations: bool = False
-    lr_schedule: str = "constant"
+    lr_schedule: str = "cosine"
     steps: int = 3000
     batch_size: int = 256
     lr: float = 1e-3
