@@ -15,9 +15,12 @@ A dataset is named by its Minari id (looked up under ``MINARI_DATASETS_PATH``, e
 downloaded: a dataset that is not on disk is a ``FileNotFoundError`` naming the id and the path searched. Two
 datasets with different observation or action spaces are a ``ValueError`` naming both spaces.
 
-Spaces: a ``Box`` observation and a ``Box`` or ``Discrete`` action. A ``Discrete(n)`` action is stored one-hot
-(``n`` floats), so the ratio network, Q and the actor see a vector as for a box; the evaluation env maps the
-actor's output back to ``argmax`` (:func:`make_minari_eval_env`); this relaxation runs, its learning is not measured here.
+Spaces: a ``Box`` observation of any shape and a one-dimensional ``Box`` or a ``Discrete`` action. An observation
+of shape ``(d1, d2, ...)`` (a grid, an image) is read flattened (row-major, ``d1 d2 ...`` float32 numbers), and
+the evaluation env flattens and casts its observation the same way (torchrl's ``FlattenObservation`` and
+``DTypeCastTransform``), so the networks see one vector in training and in evaluation. A ``Discrete(n)`` action is
+stored one-hot (``n`` floats), so the ratio network, Q and the actor see a vector as for a box; the evaluation env
+maps the actor's output back to ``argmax`` (:func:`make_minari_eval_env`).
 
 Reading uses Minari's own reader (``MinariDataset.iterate_episodes``). torchrl's ``MinariExperienceReplay`` does the
 same conversion, but it reads only ids under ``MINARI_DATASETS_PATH`` and writes a second, memory-mapped copy of
@@ -119,9 +122,13 @@ def _check_spaces(observation_space, action_space, where: str) -> None:
     from gymnasium import spaces
 
     if not isinstance(observation_space, spaces.Box):
-        raise ValueError(f"{where}: the observation space is {observation_space}; only a Box is supported.")
+        raise ValueError(f"{where}: the observation space is {observation_space}; only a Box (of any shape) is "
+                         f"supported.")
     if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
         raise ValueError(f"{where}: the action space is {action_space}; only a Box or a Discrete is supported.")
+    if isinstance(action_space, spaces.Box) and len(action_space.shape) != 1:
+        raise ValueError(f"{where}: the action space is {action_space}, of shape {action_space.shape}; a Box action "
+                         f"must be one-dimensional (shape (m,)), or a Discrete.")
 
 
 def _action_tensor(actions: np.ndarray, action_space) -> torch.Tensor:
@@ -147,7 +154,10 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0) -> TensorDict:
         steps = len(episode.rewards)
         if steps == 0:
             continue
-        obs = obs.reshape(obs.shape[0], -1)
+        if tuple(obs.shape[1:]) != tuple(dataset.observation_space.shape):
+            raise ValueError(f"Minari episode {episode.id} has observations of shape {tuple(obs.shape[1:])}, but the "
+                             f"dataset's observation space is {dataset.observation_space}.")
+        obs = obs.reshape(obs.shape[0], -1)  # row-major, as the evaluation env's FlattenObservation
         if obs.shape[0] != steps + 1:
             raise ValueError(f"Minari episode {episode.id} has {obs.shape[0]} observations for {steps} steps.")
         terminated = torch.as_tensor(np.asarray(episode.terminations, dtype=bool)).reshape(steps, 1)
@@ -214,6 +224,10 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         "action_high": high,
         "discrete_actions": discrete,
         "eval_env": data.eval_env or _recorded_env_id(expert_ds) or _recorded_env_id(behaviour_ds),
+        # the recorded spec (entry point, kwargs, wrappers) when the env is the dataset's: gymnasium.make of it needs
+        # no registration, so an env registered only where the data were made (a reshaped one) is recovered too
+        "eval_env_spec": None if data.eval_env else _recorded_spec_json(expert_ds, behaviour_ds),
+        "observation_shape": list(expert_ds.observation_space.shape),
         "max_episode_steps": _recorded_max_steps(expert_ds),
         "seed": seed,
         "behaviour_mean_return": _mean_return(behaviour),
@@ -247,20 +261,35 @@ def _recorded_env_id(dataset) -> str | None:
     return None if spec is None else spec.id
 
 
+def _recorded_spec_json(*datasets) -> str | None:
+    for dataset in datasets:
+        spec = _recorded_spec(dataset)
+        if spec is not None:
+            return spec.to_json()
+    return None
+
+
 def _recorded_max_steps(dataset) -> int | None:
     spec = _recorded_spec(dataset)
     return None if spec is None else spec.max_episode_steps
 
 
 def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
-    """The torchrl ``GymEnv`` of the datasets' gymnasium env (``metadata`` of :func:`make_minari_datasets`).
+    """The torchrl env of the datasets' gymnasium env (``metadata`` of :func:`make_minari_datasets`).
 
-    Float64 observations are cast to float32 (``DoubleToFloat``). For a ``Discrete`` action the env is built
-    one-hot (``categorical_action_encoding=False``) and takes the policy's ``n`` scores: the inverse transform steps
-    gym with their ``argmax``. Raises a ``ValueError`` when no env is known (datasets that record none, and no
-    ``env.minari.eval_env``), and gymnasium's own error for an id it does not know.
+    The env is ``gymnasium.make`` of the spec recorded in the dataset (as ``MinariDataset.recover_environment``
+    does), or of the id ``env.minari.eval_env``, wrapped in torchrl's ``GymWrapper``. Its observation is cast to
+    float32 (``DoubleToFloat``, ``DTypeCastTransform``) and, when multi-dimensional, flattened row-major
+    (``FlattenObservation``), as :func:`read_minari_transitions` reads the data. For a ``Discrete`` action the env is
+    built one-hot (``categorical_action_encoding=False``) and takes the policy's ``n`` scores: the inverse transform
+    steps gym with their ``argmax``. Raises a ``ValueError`` when no env is known (datasets that record none, and no
+    ``env.minari.eval_env``) or when the env's observation does not match the datasets', and gymnasium's own error
+    for an id it does not know.
     """
-    from torchrl.envs import Compose, DoubleToFloat, GymEnv, Transform, TransformedEnv
+    import gymnasium as gym
+    from gymnasium.envs.registration import EnvSpec
+    from torchrl.envs import Compose, DoubleToFloat, DTypeCastTransform, FlattenObservation, GymWrapper, Transform
+    from torchrl.envs import TransformedEnv
 
     class ScoresToOneHot(Transform):
         """The policy writes ``n`` scores; the env gets the one-hot vector of their argmax."""
@@ -277,12 +306,26 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
             f"The Minari datasets {metadata.get('expert_dataset')!r} / {metadata.get('behaviour_dataset')!r} record no "
             f"gymnasium env to evaluate on: pass env.minari.eval_env=<gymnasium id>."
         )
-    base = GymEnv(env_id, categorical_action_encoding=False)
+    recorded = metadata.get("eval_env_spec")
+    base = GymWrapper(gym.make(EnvSpec.from_json(recorded) if recorded else env_id), categorical_action_encoding=False)
     transforms = []
     if metadata.get("discrete_actions"):
         transforms.append(ScoresToOneHot())
     if any(spec.dtype == torch.float64 for spec in base.observation_spec.values(True, True)):
         transforms.append(DoubleToFloat())
+    observation = base.observation_spec.get("observation", None)
+    if observation is None:
+        raise ValueError(f"The evaluation env {env_id!r} has no 'observation' entry (its observation spec: "
+                         f"{base.observation_spec}); a Box observation is needed.")
+    if observation.dtype not in (torch.float32, torch.float64):
+        transforms.append(DTypeCastTransform(observation.dtype, torch.float32, in_keys=["observation"]))
+    shape = list(observation.shape)
+    expected = metadata.get("observation_shape")
+    if expected is not None and shape != list(expected):
+        raise ValueError(f"The evaluation env {env_id!r} has observations of shape {tuple(shape)}; the Minari "
+                         f"datasets' observation space is {metadata.get('observation_space')}.")
+    if len(shape) > 1:
+        transforms.append(FlattenObservation(-len(shape), -1, in_keys=["observation"]))
     env = TransformedEnv(base, Compose(*transforms)) if transforms else base
     if seed is not None:
         env.set_seed(seed)

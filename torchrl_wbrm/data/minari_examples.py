@@ -10,10 +10,22 @@ actions (about −33 over the 999-step limit) and whole episodes of the expert w
   per episode, against about −1,180 for uniform random torques), plus a little action noise;
 * behaviour — whole episodes of uniform random torques, and whole episodes of the expert with more noise.
 
+``CartPole-v1`` (:func:`make_cartpole_datasets`) (Box observation, ``Discrete(2)`` action, 500-step limit): the
+expert pushes towards the pole's lean, ``1 if θ + 0.5 θ̇ > 0 else 0`` (:func:`cartpole_expert_action`; 500, the
+maximum, from every start tried), taking a uniform random action with probability 0.05; the behaviour is whole
+episodes of uniform random actions (about 22) and whole episodes of the expert taking a random action with
+probability 0.5 (about 170).
+
+A multi-dimensional ``Box`` observation: :func:`register_reshaped_env` registers a gymnasium env whose observation
+is another env's reshaped (gymnasium's ``ReshapeObservation``; ``CartPole-v1`` as ``(2, 2)``:
+``torchrl_wbrm/CartPole_2x2-v1``), recorded in the dataset with an importable entry point
+(:func:`make_reshaped_env`), so the evaluation env is recovered from the dataset alone; ``make_cartpole_datasets(...,
+observation_shape=(2, 2))`` writes the CartPole datasets on it.
+
 Written with :func:`~torchrl_wbrm.data.minari_data.write_minari_dataset` (``minari[hdf5]`` only), so
 ``env=minari`` can read them back; nothing is downloaded::
 
-    python -m torchrl_wbrm.data.minari_examples --env mountain_car --data-path datasets/minari
+    python -m torchrl_wbrm.data.minari_examples --env mountain_car --data-path datasets/minari  # or --env cartpole
     python recipes/wbrm_offline.py env=minari env.minari.expert=datasets/minari/mountain_car/expert-v0 \\
         env.minari.behaviour=datasets/minari/mountain_car/behaviour-v0 q.bc_alpha=2.5
 """
@@ -33,12 +45,18 @@ __all__ = [
     "collect_gym_episodes",
     "make_pendulum_datasets",
     "make_mountain_car_datasets",
+    "cartpole_expert_action",
+    "make_cartpole_datasets",
+    "make_reshaped_env",
+    "register_reshaped_env",
     "PENDULUM",
     "MOUNTAIN_CAR",
+    "CARTPOLE",
 ]
 
 PENDULUM = "Pendulum-v1"
 MOUNTAIN_CAR = "MountainCarContinuous-v0"
+CARTPOLE = "CartPole-v1"
 
 
 def pendulum_expert_action(observation: np.ndarray) -> np.ndarray:
@@ -57,6 +75,38 @@ def mountain_car_expert_action(observation: np.ndarray, noise: float, rng: np.ra
     """``clip(0.9 sign(v) + noise U(−1, 1), −1, 1)`` for ``MountainCarContinuous-v0`` (left at rest)."""
     direction = 1.0 if float(np.asarray(observation).reshape(-1)[1]) > 0 else -1.0
     return np.clip(np.array([0.9 * direction + noise * rng.uniform(-1.0, 1.0)], dtype=np.float32), -1.0, 1.0)
+
+
+def cartpole_expert_action(observation: np.ndarray) -> int:
+    """``1`` (push right) if ``θ + 0.5 θ̇ > 0``, else ``0``, for ``CartPole-v1`` (any shape of its 4 numbers)."""
+    _, _, theta, omega = (float(v) for v in np.asarray(observation).reshape(-1)[:4])
+    return int(theta + 0.5 * omega > 0)
+
+
+def make_reshaped_env(env_id: str, shape, **kwargs):
+    """``gymnasium.make(env_id, **kwargs)`` with its ``Box`` observation reshaped to ``shape`` (``ReshapeObservation``)."""
+    import gymnasium as gym
+    from gymnasium.wrappers import ReshapeObservation
+
+    return ReshapeObservation(gym.make(env_id, **kwargs), tuple(int(n) for n in shape))
+
+
+def register_reshaped_env(env_id: str, shape) -> str:
+    """Register (once) the gymnasium env ``env_id`` with its observation reshaped to ``shape``; returns its id,
+    ``torchrl_wbrm/<name>_<d1>x<d2>...-v<version>`` (``CartPole-v1``, ``(2, 2)`` -> ``torchrl_wbrm/CartPole_2x2-v1``).
+    The spec's entry point is :func:`make_reshaped_env`, importable, so a dataset that records it can be evaluated
+    in any process (``gymnasium.make`` of the recorded spec)."""
+    import gymnasium as gym
+    from gymnasium.envs.registration import parse_env_id
+
+    shape = tuple(int(n) for n in shape)
+    _, name, version = parse_env_id(env_id)
+    new_id = f"torchrl_wbrm/{name}_{'x'.join(map(str, shape))}" + ("" if version is None else f"-v{version}")
+    if new_id not in gym.registry:
+        gym.register(new_id, entry_point=f"{__name__}:make_reshaped_env",
+                     max_episode_steps=gym.spec(env_id).max_episode_steps,
+                     kwargs={"env_id": env_id, "shape": list(shape)})
+    return new_id
 
 
 def collect_gym_episodes(env_id: str, policy: Callable[[np.ndarray, np.random.Generator], np.ndarray], episodes: int,
@@ -142,13 +192,44 @@ def make_mountain_car_datasets(data_path: str | os.PathLike, *, expert_episodes:
     return {**ids, **{f"{k}_path": os.path.join(os.fspath(data_path), v) for k, v in ids.items()}}
 
 
+def make_cartpole_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 10, random_episodes: int = 20,
+                           noisy_expert_episodes: int = 20, noise: float = 0.5, seed: int = 0,
+                           observation_shape=None, namespace: str = "cartpole") -> dict:
+    """Write ``<namespace>/expert-v0`` (the expert, a random action with probability 0.05) and
+    ``<namespace>/behaviour-v0`` (``random_episodes`` of uniform actions, then ``noisy_expert_episodes`` of the expert
+    taking a random action with probability ``noise``) on ``CartPole-v1`` (a ``Discrete(2)`` action) under
+    ``data_path``; with ``observation_shape`` on CartPole with that observation shape (:func:`register_reshaped_env`).
+    Returns their ids and paths and the env's id."""
+    env_id = CARTPOLE if observation_shape is None else register_reshaped_env(CARTPOLE, observation_shape)
+
+    def expert(epsilon):
+        def policy(obs, rng):
+            return int(rng.integers(0, 2)) if rng.random() < epsilon else cartpole_expert_action(obs)
+
+        return policy
+
+    ex = collect_gym_episodes(env_id, expert(0.05), expert_episodes, seed=seed)
+    behaviour = collect_gym_episodes(env_id, expert(1.0), random_episodes, seed=seed + 10_000)
+    behaviour += collect_gym_episodes(env_id, expert(noise), noisy_expert_episodes, seed=seed + 20_000)
+    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
+    write_minari_dataset(ids["expert"], ex, data_path=data_path, env=env_id, eval_env=env_id,
+                         algorithm_name="1 if θ + 0.5 θ' > 0 else 0; a random action with probability 0.05",
+                         description=f"torchrl_wbrm example: {env_id} expert")
+    write_minari_dataset(ids["behaviour"], behaviour, data_path=data_path, env=env_id, eval_env=env_id,
+                         algorithm_name=f"uniform random actions, then the expert with random actions at {noise}",
+                         description=f"torchrl_wbrm example: {env_id} behaviour")
+    return {**ids, "env": env_id,
+            **{f"{k}_path": os.path.join(os.fspath(data_path), v) for k, v in ids.items()}}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--env", choices=("mountain_car", "pendulum"), default="mountain_car")
+    parser.add_argument("--env", choices=("mountain_car", "pendulum", "cartpole"), default="mountain_car")
     parser.add_argument("--data-path", default="datasets/minari", help="Minari data path to write under")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    make = make_mountain_car_datasets if args.env == "mountain_car" else make_pendulum_datasets
+    make = {"mountain_car": make_mountain_car_datasets, "pendulum": make_pendulum_datasets,
+            "cartpole": make_cartpole_datasets}[args.env]
     out = make(args.data_path, seed=args.seed)
     print(f"expert:    {out['expert_path']}\nbehaviour: {out['behaviour_path']}")
 
