@@ -17,6 +17,9 @@ import pytest
 
 from tests.references import reference_regrets
 
+#: one xdist worker runs this module: its module-scoped runs are computed once (``pytest -n 2 --dist loadgroup``)
+pytestmark = pytest.mark.xdist_group("examples")
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr"]
 
