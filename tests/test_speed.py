@@ -226,6 +226,60 @@ def test_lqr_rollout_shortcut_equals_torchrl_rollout(batch, max_steps):
     assert torch.equal(envs[0].rng.get_state(), envs[1].rng.get_state())
 
 
+class _ExtrasPolicy(_NoisyLinearPolicy):
+    """Also writes a nested entry and replaces the ``"terminated"`` flag it is given by an equal new tensor."""
+
+    def forward(self, tensordict):
+        tensordict = super().forward(tensordict)
+        tensordict.set(("policy", "scale"), tensordict.get("action").abs())
+        return tensordict.set("terminated", tensordict.get("terminated").clone())
+
+
+def test_lqr_rollout_shortcut_with_nested_and_replaced_entries_equals_torchrl_rollout():
+    from torchrl.envs import EnvBase
+
+    from torchrl_wbrm.envs import LQREnv
+
+    envs = [LQREnv("exp1", batch_size=[5], seed=1) for _ in range(2)]
+    policy = _ExtrasPolicy(envs[0].riccati()[1].float())
+    outs = []
+    for env, rollout in zip(envs, (LQREnv.rollout, EnvBase.rollout)):
+        torch.manual_seed(0)
+        outs.append(rollout(env, 20, policy))
+    fast, slow = outs
+    assert set(fast.keys(True, True)) == set(slow.keys(True, True)) and ("policy", "scale") in fast.keys(True, True)
+    assert all(torch.equal(fast.get(k), slow.get(k)) for k in slow.keys(True, True))
+
+
+def test_lqr_rollout_shortcut_checks_actions_and_refuses_flags_written_in_place():
+    from torchrl_wbrm.envs import LQREnv
+
+    class NaNFromThirdStep(TensorDictModuleBase):
+        in_keys, out_keys = ["observation"], ["action"]
+
+        def __init__(self):
+            super().__init__()
+            self.calls = 0
+
+        def forward(self, tensordict):
+            self.calls += 1
+            a = torch.full(tensordict.batch_size + (2,), float("nan") if self.calls > 2 else 0.0)
+            return tensordict.set("action", a)
+
+    class WritesDone(TensorDictModuleBase):
+        in_keys, out_keys = ["observation"], ["action"]
+
+        def forward(self, tensordict):
+            tensordict.get("done").fill_(True)
+            return tensordict.set("action", torch.zeros(tensordict.batch_size + (2,)))
+
+    env = LQREnv("exp1", batch_size=[4], seed=0)
+    with pytest.raises(ValueError, match=r"'action' holds 144 non-finite value\(s\)"):
+        env.rollout(20, NaNFromThirdStep())  # steps 3..20: 18 steps x 4 systems x 2 entries
+    with pytest.raises(RuntimeError, match="wrote the done flags it was given in place"):
+        env.rollout(20, WritesDone())
+
+
 def test_lqr_rollout_other_arguments_take_torchrl_path():
     from torchrl_wbrm.envs import LQREnv
 

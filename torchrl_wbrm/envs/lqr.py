@@ -270,25 +270,29 @@ class LQREnv(BatchedEpisodicEnv):
         obs = self.config.initial_std * self._randn(*self.batch_size, d)
         return self._start_episodes(tensordict, obs)
 
-    def _check_action(self, a: torch.Tensor | None) -> None:
-        """The action of a step: present, of shape ``(*batch, m)``, of the env's dtype and (on CPU) finite."""
+    def _check_action(self, a: torch.Tensor | None, finite: bool = True) -> None:
+        """The action of a step: present, of shape ``(*batch, m)``, of the env's dtype and (on CPU, unless
+        ``finite=False``) finite."""
         expected = (*self.batch_size, self.config.action_dim)
         if a is None:
             raise KeyError(f"LQREnv.step needs an 'action' entry of shape {expected}.")
-        if tuple(a.shape) != expected:
+        if a.shape != expected:
             raise ValueError(f"LQREnv.step: 'action' has shape {tuple(a.shape)}, expected {expected} (batch {tuple(self.batch_size)}, "
                              f"action dim {self.config.action_dim}).")
         if a.dtype != self._dtype:
             raise TypeError(f"LQREnv.step: 'action' has dtype {a.dtype}, expected {self._dtype} (the env's dtype).")
         # a sum is finite iff every entry is (or it overflowed: then the entries are checked one by one); one
         # reduction instead of a bool tensor the size of the batch (a sixth of an LQR step at B = 16384)
-        if a.device.type == "cpu" and not bool(torch.isfinite(a.sum())) and not bool(torch.isfinite(a).all()):
+        if finite and a.device.type == "cpu":
+            self._check_finite(a)
+
+    @staticmethod
+    def _check_finite(a: torch.Tensor) -> None:
+        if not bool(torch.isfinite(a.sum())) and not bool(torch.isfinite(a).all()):
             raise ValueError(f"LQREnv.step: 'action' holds {int((~torch.isfinite(a)).sum())} non-finite value(s) (NaN or inf).")
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        x = tensordict.get("observation")
-        a = tensordict.get("action", None)
-        self._check_action(a)
+    def _dynamics(self, x: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(x_{t+1}, r_t)`` for a checked action: the reward noise is drawn first, then the transition noise."""
         cfg = self.config
         buffers = self._buffers  # (one dict lookup instead of four nn.Module.__getattr__ calls)
         S, R, F, G = buffers["_S"], buffers["_R"], buffers["_F"], buffers["_G"]
@@ -297,9 +301,16 @@ class LQREnv(BatchedEpisodicEnv):
         if cfg.reward_clip is not None:
             reward = reward.clamp_min(cfg.reward_clip)
         next_x = x @ F.T + a @ G.T + cfg.transition_noise_std * self._randn(*x.shape)
+        return next_x, reward
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a = tensordict.get("action", None)
+        self._check_action(a)
+        next_x, reward = self._dynamics(tensordict.get("observation"), a)
+        buffers = self._buffers
         step_count = buffers["_step_count"] + 1
         buffers["_step_count"] = step_count  # the registered buffer, replaced without nn.Module.__setattr__
-        truncated = step_count >= cfg.horizon
+        truncated = step_count >= self.config.horizon
         terminated = torch.zeros_like(truncated)
         # every entry is built here with the batch shape and device of the specs: no validation needed
         return TensorDict._new_unsafe(
@@ -314,16 +325,22 @@ class LQREnv(BatchedEpisodicEnv):
             device=self.device,
         )
 
+    _FLAGS = ("done", "terminated", "truncated")
+
     def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
         """torchrl's :meth:`~torchrl.envs.EnvBase.rollout`; the common call (a TensorDict policy, a fresh reset,
         stop when done) takes a shorter path with the same result.
 
         ``env.rollout(n, policy)`` spends most of a small batch's time in ``EnvBase.step``'s generic bookkeeping
-        (shape checks, done completion, ``"next"`` handling). On this env every step's output is built by
-        :meth:`_step` with the specs' shapes, and after a full reset every system is truncated at the same step
-        (the system never terminates), so the loop can call :meth:`_step` directly and stop at
-        ``min(max_steps, horizon)`` without reading the done flags (no host sync). The policy, ``step_mdp``, the
-        stacking and the generator draws are torchrl's own, in the same order: the output is identical (tested).
+        (shape checks, done completion, ``"next"`` handling, ``step_mdp``). After a full reset every system is
+        truncated at the same step and never terminates, so the done flags of the whole rollout are known in
+        advance: ``False`` everywhere but ``("next", "done")`` and ``("next", "truncated")`` at step ``horizon - 1``.
+        The shortcut therefore runs ``min(max_steps, horizon)`` steps of the policy, :meth:`_check_action` and
+        :meth:`_dynamics` (the arithmetic and the generator draws of :meth:`_step`, in the same order), hands the
+        policy what ``step_mdp`` would (the new observation, the previous action and the policy's other entries,
+        ``False`` flags), stacks the float entries step by step and builds the flags in one allocation each. The
+        output, the step counter and the generator state are those of torchrl's loop (tested). A policy that writes
+        the flags it is given in place is refused (a ``RuntimeError``); one that replaces them gets them stacked.
         Any other argument (``break_when_any_done=False``, ``auto_reset=False``, a ``tensordict``, a callback,
         ``set_truncated``, an ``out``, a non-TensorDict policy, ...) runs torchrl's loop.
         """
@@ -340,39 +357,84 @@ class LQREnv(BatchedEpisodicEnv):
             and not self._has_dynamic_specs
             and type(self).step is EnvBase.step
             and type(self)._step_mdp is EnvBase._step_mdp
+            and type(self)._step is LQREnv._step
             and max_steps >= 1
         )
         if not fast:
             return super().rollout(max_steps, policy, callback, **kwargs)
+        batch_size, device, flags = self.batch_size, self.device, self._FLAGS
         tensordict = self.reset()
         steps = min(int(max_steps), self.config.horizon)
+        # the flags every step after the first hands the policy (the first gets the reset's own)
+        given = {k: torch.zeros(*batch_size, 1, dtype=torch.bool, device=device) for k in flags}
+        handed = [tensordict.get(k) for k in flags] + list(given.values())
+        expected = [handed[:3]] + [handed[3:]] * (steps - 1)
         keys, columns = None, None
-        for _ in range(steps):
+        next_observations, rewards = [], []
+        for t in range(steps):
             out = policy(tensordict)
             if out is not tensordict:  # (updating a TensorDict with itself changes nothing)
                 tensordict.update(out)
-            tensordict.set("next", self._step(tensordict))
-            next_td = self._step_mdp(tensordict)
-            step_keys = list(tensordict.keys(True, True))
+            entries, flat = self._leaves(tensordict)
+            action = entries.get("action", None)
+            self._check_action(action, finite=False)  # (finite: checked once on the stacked actions below)
+            next_x, reward = self._dynamics(entries["observation"], action)
             if keys is None:
-                keys, columns = step_keys, [[] for _ in step_keys]
-            elif step_keys != keys and set(step_keys) != set(keys):  # a policy writing other entries at some steps
-                self._stack_mismatch(keys, step_keys)
+                keys, columns = list(entries), [[] for _ in entries]
+            elif len(entries) != len(keys) or any(k not in entries for k in keys):  # other entries at some steps
+                self._stack_mismatch(keys, list(entries))
             for column, key in zip(columns, keys):
-                column.append(tensordict.get(key))
-            tensordict = next_td
+                column.append(entries[key])
+            next_observations.append(next_x)
+            rewards.append(reward)
+            # step_mdp: the root entries (the action and the policy's other outputs kept), the new observation and flags
+            if not flat:
+                entries = dict(tensordict.items())
+            entries["observation"] = next_x
+            entries.update(given)
+            tensordict = TensorDict._new_unsafe(entries, batch_size=batch_size, device=device)
+        if bool(torch.cat(handed).any()):
+            raise RuntimeError(
+                "LQREnv.rollout: the policy wrote the done flags it was given in place; call "
+                "EnvBase.rollout(env, max_steps, policy) for torchrl's loop."
+            )
+        self._buffers["_step_count"] = torch.full_like(self._buffers["_step_count"], steps)
         # torch.stack of the steps' TensorDicts, entry by entry (the same tensors, without its per-call checks)
-        dim = len(self.batch_size)
+        dim = len(batch_size)
+        shape = (*batch_size, steps, 1)
         nested: dict = {}
         for key, column in zip(keys, columns):
             *parents, leaf = key if isinstance(key, tuple) else (key,)
             node = nested
             for parent in parents:
                 node = node.setdefault(parent, {})
-            node[leaf] = torch.stack(column, dim)
-        result = TensorDict(nested, batch_size=(*self.batch_size, steps), device=self.device)
+            if not parents and leaf in flags and all(c is e[flags.index(leaf)] for c, e in zip(column, expected)):
+                node[leaf] = torch.zeros(shape, dtype=torch.bool, device=device)  # the flags it was handed, all False
+            else:
+                node[leaf] = torch.stack(column, dim)
+        if nested["action"].device.type == "cpu":  # _check_action's finite check, for all steps at once
+            self._check_finite(nested["action"])
+        truncated = torch.zeros(shape, dtype=torch.bool, device=device)
+        if steps >= self.config.horizon:
+            truncated[..., -1, :] = True
+        next_td = nested.setdefault("next", {})
+        next_td.update(
+            observation=torch.stack(next_observations, dim), reward=torch.stack(rewards, dim),
+            done=truncated.clone(), terminated=torch.zeros(shape, dtype=torch.bool, device=device), truncated=truncated,
+        )
+        result = TensorDict(nested, batch_size=(*batch_size, steps), device=device)
         result.refine_names(..., "time")
         return result
+
+    @staticmethod
+    def _leaves(tensordict: TensorDictBase) -> tuple[dict, bool]:
+        """``{key: tensor}`` of ``tensordict``'s leaves, the keys as ``keys(True, True)`` gives them, and whether
+        they are its top-level entries (a plain TensorDict of tensors: read straight from its dictionary)."""
+        if type(tensordict) is TensorDict:
+            entries = tensordict._tensordict
+            if all(type(v) is torch.Tensor for v in entries.values()):
+                return dict(entries), True
+        return {key: tensordict.get(key) for key in tensordict.keys(True, True)}, False
 
     @staticmethod
     def _stack_mismatch(keys, step_keys):
