@@ -1,14 +1,14 @@
 """env=minari: D, S^b and S^e from local Minari datasets, evaluation on the datasets' gymnasium env, clear errors.
 
-The datasets are written here, on MountainCarContinuous-v0 (and Pendulum-v1, CartPole-v1 for the error and
-Discrete cases), with ``minari.create_dataset_from_buffers`` and ``EpisodeBuffer`` objects: that needs only
-``minari[hdf5]``; ``minari.DataCollector`` would need jax. Nothing is downloaded.
+The datasets are written here, on MountainCarContinuous-v0 (and Pendulum-v1 for the errors, CartPole-v1 with a
+(2, 2) observation for a Discrete action and a multi-dimensional Box observation, a tiny uint8 (3, 4) "image" env),
+with ``minari.create_dataset_from_buffers`` and ``EpisodeBuffer`` objects: that needs only ``minari[hdf5]``;
+``minari.DataCollector`` would need jax. Nothing is downloaded.
 """
 from __future__ import annotations
 
-import logging
-import math
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -24,7 +24,50 @@ from torchrl_wbrm.data.minari_data import (
     transitions_to_episodes,
     write_minari_dataset,
 )
-from torchrl_wbrm.data.minari_examples import PENDULUM, collect_gym_episodes, pendulum_expert_action
+from torchrl_wbrm.data.minari_examples import (
+    PENDULUM,
+    cartpole_expert_action,
+    collect_gym_episodes,
+    make_cartpole_datasets,
+    pendulum_expert_action,
+)
+
+#: the tiny uint8 "image" env's id (an observation of shape (3, 4), a Discrete(2) action)
+IMAGE_ENV = "torchrl_wbrm_tests/TinyImage-v0"
+
+
+class TinyImageEnv(gym.Env):
+    """A uint8 ``(3, 4)`` observation (uniform pixels), ``Discrete(2)`` actions, 8 steps: reward 1 when the action
+    says whether the mean pixel is above 127."""
+
+    observation_space = gym.spaces.Box(0, 255, (3, 4), np.uint8)
+    action_space = gym.spaces.Discrete(2)
+
+    def _observe(self):
+        self._obs = self.np_random.integers(0, 256, (3, 4), dtype=np.uint8)
+        return self._obs
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self._t = 0
+        return self._observe(), {}
+
+    def step(self, action):
+        reward = float(int(action) == int(self._obs.mean() > 127))
+        self._t += 1
+        return self._observe(), reward, False, self._t >= 8, {}
+
+
+@pytest.fixture(scope="session")
+def cartpole_grid(tmp_path_factory) -> dict:
+    """CartPole-v1 with its observation reshaped to (2, 2) (a Discrete(2) action): 10 expert episodes; a behaviour
+    of 20 random and 20 epsilon-greedy (0.5) episodes. Written once per session."""
+    root = tmp_path_factory.mktemp("minari_cartpole")
+    return {"data_path": str(root), **make_cartpole_datasets(root, observation_shape=(2, 2), seed=0)}
+
+
+def _cartpole_config(data: dict) -> MinariDataConfig:
+    return MinariDataConfig(expert=data["expert"], behaviour=data["behaviour"], data_path=data["data_path"])
 
 
 def _config(**kw) -> MinariDataConfig:
@@ -123,27 +166,103 @@ def test_eval_env_recorded_or_given(tmp_path):
     assert env.action_spec.shape[-1] == 1
 
 
-def test_discrete_action_runs(tmp_path, single_thread):
-    """A Discrete action (CartPole-v1) is read one-hot; the recipe's trainer runs on it and evaluates on gym."""
+def test_multidimensional_observation_read_flat_and_evaluated_alike(cartpole_grid):
+    """A (2, 2) Box observation: read flattened row-major; the evaluation env, recovered from the dataset's recorded
+    spec even where the env id is not registered, flattens its observation the same way."""
+    from minari.dataset.minari_dataset import MinariDataset
+
+    datasets = make_minari_datasets(_cartpole_config(cartpole_grid))
+    meta = datasets.metadata
+    assert meta["observation_shape"] == [2, 2] and meta["discrete_actions"] == 2
+    episode = next(MinariDataset(meta["behaviour_path"]).iterate_episodes())
+    read = read_minari_transitions(MinariDataset(meta["behaviour_path"]))
+    assert read["observation"].shape[-1] == 4 and read["observation"].dtype == torch.float32
+    np.testing.assert_array_equal(read["observation"][: len(episode.rewards)].numpy(),
+                                  episode.observations[:-1].reshape(-1, 4))
+    spec = gym.registry.pop(cartpole_grid["env"])  # as in a fresh process: only the recorded spec knows the env
+    try:
+        env = make_minari_eval_env(meta, seed=0)
+    finally:
+        gym.registry[cartpole_grid["env"]] = spec
+    assert env.observation_spec["observation"].shape == (4,)
+    td = env.reset()
+    state = env.base_env._env.unwrapped.state  # CartPole's (x, ẋ, θ, θ̇)
+    np.testing.assert_allclose(td["observation"].numpy(), np.asarray(state, dtype=np.float32), rtol=1e-6)
+    # the expert heuristic, reading the flat vector, keeps the pole up in the evaluation env
+    from tensordict.nn import TensorDictModule
+
+    from torchrl_wbrm.evaluation import evaluate_returns
+
+    def scores(obs):
+        return torch.nn.functional.one_hot(torch.tensor(cartpole_expert_action(obs.numpy())), 2).float()
+
+    assert evaluate_returns(env, TensorDictModule(scores, ["observation"], ["action"]), episodes=1, seed=0).mean == 500
+    # an evaluation env whose observation is not the datasets' shape is refused, naming both
+    with pytest.raises(ValueError, match=r"'CartPole-v1' has observations of shape \(4,\), the Minari datasets' of shape \(2, 2\)"):
+        make_minari_eval_env({**meta, "eval_env": "CartPole-v1", "eval_env_spec": None})
+
+
+def test_multidimensional_box_action_refused(tmp_path):
+    episodes = [{"observations": np.zeros((3, 2), np.float32), "actions": np.zeros((2, 2, 2), np.float32),
+                 "rewards": np.zeros(2), "terminations": np.array([False, True]), "truncations": np.zeros(2, bool)}]
+    write_minari_dataset("grid/action-v0", episodes, data_path=tmp_path,
+                         observation_space=gym.spaces.Box(-1.0, 1.0, (2,), np.float32),
+                         action_space=gym.spaces.Box(-1.0, 1.0, (2, 2), np.float32))
+    with pytest.raises(ValueError, match=r"of shape \(2, 2\); a Box action must be one-dimensional"):
+        make_minari_datasets(MinariDataConfig(expert="grid/action-v0", behaviour="grid/action-v0",
+                                              data_path=str(tmp_path)))
+
+
+def _tiny_trainer_config(minari: MinariDataConfig) -> dict:
+    return {"env": {"name": "tiny", "kind": "minari", "minari": vars(minari)}, "ratio": {"steps": 4, "eval_every": 2,
+            "batch_size": 32, "num_cells": [8]}, "q": {"steps": 4, "eval_every": 4, "batch_size": 32,
+            "num_cells": [8], "actor_num_cells": [8], "gamma": 0.99}, "eval": {"episodes": 2, "train_episodes": 1},
+            "plots": False, "checkpoint_every": 0, "threads": 1}
+
+
+def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread):
+    """A uint8 (3, 4) observation and a Discrete(2) action: read as 12 float32 numbers and one-hot actions; the
+    recipe's trainer runs on them (a Q head over the two actions, no actor) and evaluates on the env, which casts
+    and flattens its observation alike."""
     from torchrl_wbrm.training import WBRMTrainer
 
-    def random_policy(obs, rng):
-        return int(rng.integers(0, 2))
+    gym.register(IMAGE_ENV, entry_point=f"{__name__}:TinyImageEnv")
+    try:
+        episodes = collect_gym_episodes(IMAGE_ENV, lambda obs, rng: int(rng.integers(0, 2)), 6, seed=0)
+        write_minari_dataset("tiny/random-v0", episodes, data_path=tmp_path, env=IMAGE_ENV, eval_env=IMAGE_ENV)
+        minari = MinariDataConfig(expert="tiny/random-v0", behaviour="tiny/random-v0", data_path=str(tmp_path))
+        datasets = make_minari_datasets(minari)
+        d = datasets.transitions[:]
+        assert d["observation"].shape[-1] == 12 and d["observation"].dtype == torch.float32
+        assert d["observation"].max() > 1.0  # pixel values, not rescaled
+        assert torch.equal(d["action"].sum(-1), torch.ones(d.shape[0]))  # one-hot
+        env = make_minari_eval_env(datasets.metadata)
+        assert env.observation_spec["observation"].shape == (12,)
+        assert env.observation_spec["observation"].dtype == torch.float32
+        trainer = WBRMTrainer(_tiny_trainer_config(minari), tmp_path / "run", progress=False)
+        results = trainer.run()
+    finally:
+        gym.registry.pop(IMAGE_ENV, None)
+    assert not trainer.algo.loss.has_actor  # greedy in Q over the two actions
+    assert results["status"] == "finished" and 0.0 <= results["final"]["return"] <= 8.0
 
-    episodes = collect_gym_episodes("CartPole-v1", random_policy, 6, seed=0)
-    write_minari_dataset("cartpole/random-v0", episodes, data_path=tmp_path, env="CartPole-v1", eval_env="CartPole-v1")
-    minari = MinariDataConfig(expert="cartpole/random-v0", behaviour="cartpole/random-v0", data_path=str(tmp_path))
-    datasets = make_minari_datasets(minari)
-    assert datasets.metadata["discrete_actions"] == 2
-    actions = datasets.transitions[:]["action"]
-    assert actions.shape[-1] == 2 and torch.equal(actions.sum(-1), torch.ones(actions.shape[0]))
-    cfg = {"env": {"name": "cartpole", "kind": "minari", "minari": vars(minari)}, "ratio": {"steps": 4, "eval_every": 2,
-           "batch_size": 32, "num_cells": [8]}, "q": {"steps": 4, "eval_every": 4, "batch_size": 32, "num_cells": [8],
-           "actor_num_cells": [8], "gamma": 0.99}, "eval": {"episodes": 1, "train_episodes": 1}, "plots": False,
-           "checkpoint_every": 0, "threads": 1}
+
+@pytest.mark.slow
+def test_discrete_action_learning(tmp_path, cartpole_grid, single_thread):
+    """WBRM on the CartPole (2, 2)-observation datasets closes at least half the gap from the behaviour data's mean
+    return to the expert data's (lower 95% bound; measured seed 0: 500 ± 0 against 93.7 and 482.3)."""
+    from torchrl_wbrm.training import WBRMTrainer
+
+    cfg = {"env": {"name": "cartpole", "kind": "minari", "minari": vars(_cartpole_config(cartpole_grid))},
+           "ratio": {"steps": 100, "eval_every": 50, "batch_size": 256, "num_cells": [64, 64]},
+           "q": {"steps": 1000, "eval_every": 1000, "num_cells": [64, 64], "gamma": 0.99,
+                 "normalise_observations": True},  # configs/env_defaults/minari.yaml's
+           "eval": {"episodes": 5, "train_episodes": 3}, "plots": False, "checkpoint_every": 0, "threads": 1}
     results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
-    assert results["status"] == "finished" and math.isfinite(results["final"]["return"])
-    assert results["final"]["return"] >= 1.0  # at least one step of CartPole was taken
+    final, data = results["final"], results["data"]
+    behaviour, expert = data["behaviour_mean_return"], data["expert_mean_return"]
+    assert results["status"] == "finished" and behaviour < expert
+    assert final["return"] - final["return_ci"] > behaviour + 0.5 * (expert - behaviour), (final, data)
 
 
 def test_console_verbose_switch(caplog):

@@ -322,8 +322,9 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
     shape = list(observation.shape)
     expected = metadata.get("observation_shape")
     if expected is not None and shape != list(expected):
-        raise ValueError(f"The evaluation env {env_id!r} has observations of shape {tuple(shape)}; the Minari "
-                         f"datasets' observation space is {metadata.get('observation_space')}.")
+        raise ValueError(f"The evaluation env {env_id!r} has observations of shape {tuple(shape)}, the Minari "
+                         f"datasets' of shape {tuple(expected)} (observation space "
+                         f"{metadata.get('observation_space')}).")
     if len(shape) > 1:
         transforms.append(FlattenObservation(-len(shape), -1, in_keys=["observation"]))
     env = TransformedEnv(base, Compose(*transforms)) if transforms else base
