@@ -149,14 +149,16 @@ def _records(out: Path) -> list[dict]:
 
 
 def _block_records(records: list[dict], block: str) -> list[dict]:
-    """The block's records, with the default's runs (3 seeds' worth: seeds 0-2) labelled as the block's default."""
+    """The block's records, with the default's runs labelled as the block's default level: on the systems where the
+    block ran another level, and on the seeds it ran there (paired: the defaults have 5 seeds, most levels 3)."""
     default_level = next(level for level in BLOCKS[block] if _is_default(level))
-    rows = []
+    rows = [r for r in records if r["study"]["block"] == block]
+    seeds: dict[str, set] = {}
+    for r in rows:
+        seeds.setdefault(r["study"]["env"], set()).add(r["seed"])
     for r in records:
         s = r["study"]
-        if s["block"] == block:
-            rows.append(r)
-        elif s["block"] == DEFAULT:
+        if s["block"] == DEFAULT and r["seed"] in seeds.get(s["env"], ()):
             rows.append({**r, "study": {**s, "block": block, "setting": block, "method": default_level}})
     order = list(BLOCKS[block])
     return sorted(rows, key=lambda r: (SYSTEMS.index(r["study"]["env"]) if r["study"]["env"] in SYSTEMS else 99,
@@ -164,22 +166,23 @@ def _block_records(records: list[dict], block: str) -> list[dict]:
 
 
 def select(records: list[dict], block: str) -> tuple[str, dict]:
-    """The level of ``block`` with the lowest held-out Bellman residual: per system its mean over seeds divided by the
-    default's, then the geometric mean over the systems where the level ran. No ground truth is used."""
+    """The level of ``block`` with the lowest held-out Bellman residual: per system its mean over its seeds divided
+    by the default's mean over the same seeds (paired), then the geometric mean over the systems where the level
+    ran. No ground truth is used."""
     import numpy as np
 
-    rows = _block_records(records, block)
-    by = {}
-    for r in rows:
-        by.setdefault(r["study"]["method"], {}).setdefault(r["study"]["env"], []).append(
+    residual: dict[str, dict[str, dict[int, float]]] = {}  # level -> env -> seed -> held-out residual
+    for r in _block_records(records, block):
+        residual.setdefault(r["study"]["method"], {}).setdefault(r["study"]["env"], {})[r["seed"]] = (
             r["final"]["held_out_bellman_residual"])
     default_level = next(level for level in BLOCKS[block] if _is_default(level))
-    base = {env: float(np.mean(v)) for env, v in by.get(default_level, {}).items()}
+    base = residual.get(default_level, {})
     scores = {}
-    for level, envs in by.items():
+    for level, envs in residual.items():
         if block == "weighting" and not level.startswith("learned"):
             continue
-        ratios = [np.mean(v) / base[env] for env, v in envs.items() if env in base]
+        ratios = [np.mean(list(by_seed.values())) / np.mean([base[env][seed] for seed in by_seed])
+                  for env, by_seed in envs.items() if env in base and all(seed in base[env] for seed in by_seed)]
         if ratios:
             scores[level] = float(np.exp(np.mean(np.log(ratios))))
     return min(scores, key=scores.get), scores
