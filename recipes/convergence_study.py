@@ -15,6 +15,7 @@ theorem lets the network grow with m and n), so an optimisation floor can flatte
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 
@@ -22,38 +23,27 @@ import numpy as np
 
 RATIO_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
 Q_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
-BUDGET = ["logger=none", "plots=false", "checkpoint_every=0", "eval.episodes=200", "eval.q_samples=5000",
-          "eval.train_episodes=50", "ratio.mix=0.0", "ratio.clip=null"]
-QUICK = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[16,16]", "eval.q_samples=300",
-         "eval.episodes=50"]
+#: the run directory of a cell: <out>/<quantity>/<size>/seed<seed> (quantity: ratio or q)
+LABELS = ("block", "size")
 
 
-def run(overrides: list[str], run_dir: Path) -> dict:
-    from torchrl_wbrm.training.runs import run_overrides
-
-    return run_overrides(overrides, run_dir)
-
-
-def jobs(quick: bool, seeds: int, out: Path) -> list[tuple[str, int, int, list[str], Path]]:
-    extra = QUICK if quick else []
+def build_cells(quick: bool) -> list[dict]:
+    """One cell per (quantity, size): the ratio's error against m, Q̂'s error against n."""
     ratio_sizes = RATIO_SIZES[:2] if quick else RATIO_SIZES
     q_sizes = Q_SIZES[:2] if quick else Q_SIZES
     ratio_steps = "ratio.steps=30" if quick else "ratio.steps=2000"
     q_steps = "q.steps=30" if quick else "q.steps=3000"
-    out_jobs = []
-    for seed in range(seeds):
-        for m in ratio_sizes:  # m state-actions per side: m/20 expert episodes, 2m/20 behaviour (half to S^b)
-            ov = [*BUDGET, *extra, "env=lqr_exp1", f"env.lqr_data.expert_episodes={m // 20}",
-                  f"env.lqr_data.behaviour_episodes={2 * m // 20}", ratio_steps, "q.steps=1", "q.eval_every=1",
-                  "ratio.patience=10", f"seed={seed}"]
-            out_jobs.append(("ratio", m, seed, [*ov, "ratio.temper=1.0"], out / "ratio" / f"m{m}" / f"seed{seed}"))
-        for n in q_sizes:  # n transitions in D: behaviour episodes split half to S^b, 10% of D held out
-            episodes = int(round(n / 20 / 0.5 / 0.9))
-            ov = [*BUDGET, *extra, "env=lqr_exp1", f"env.lqr_data.behaviour_episodes={episodes}",
-                  "ratio.source=learned", "ratio.temper=0.25", ratio_steps, q_steps, "q.eval_every=100000",
-                  f"seed={seed}"]
-            out_jobs.append(("q", n, seed, ov, out / "q" / f"n{n}" / f"seed{seed}"))
-    return out_jobs
+    cells = []
+    for m in ratio_sizes:  # m state-actions per side: m/20 expert episodes, 2m/20 behaviour (half to S^b)
+        cells.append({"block": "ratio", "size": f"m{m}", "n": m, "overrides": [
+            "env=lqr_exp1", f"env.lqr_data.expert_episodes={m // 20}", f"env.lqr_data.behaviour_episodes={2 * m // 20}",
+            ratio_steps, "q.steps=1", "q.eval_every=1", "ratio.patience=10", "ratio.temper=1.0"]})
+    for n in q_sizes:  # n transitions in D: behaviour episodes split half to S^b, 10% of D held out
+        episodes = int(round(n / 20 / 0.5 / 0.9))
+        cells.append({"block": "q", "size": f"n{n}", "n": n, "overrides": [
+            "env=lqr_exp1", f"env.lqr_data.behaviour_episodes={episodes}", "ratio.source=learned", "ratio.temper=0.25",
+            ratio_steps, q_steps, "q.eval_every=100000"]})
+    return cells
 
 
 def fit_slope(sizes, errors) -> float:
@@ -116,12 +106,14 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
-    from joblib import Parallel, delayed
+    from torchrl_wbrm.training.runs import CONVERGENCE_BUDGET, CONVERGENCE_QUICK_BUDGET, cell_dir, run_cells
 
-    todo = jobs(args.quick, 1 if args.quick else args.seeds, out)
-    print(f"{len(todo)} runs into {out}")
-    results = Parallel(n_jobs=args.jobs)(delayed(run)(ov, d) for _, _, _, ov, d in todo)
-    records = [(k, size, seed, r) for (k, size, seed, _, _), r in zip(todo, results)]
+    cells, seeds = build_cells(args.quick), range(1 if args.quick else args.seeds)
+    budget = [*CONVERGENCE_BUDGET, *(CONVERGENCE_QUICK_BUDGET if args.quick else [])]
+    run_cells(cells, seeds, budget, out, jobs=args.jobs, labels=LABELS)
+    records = [(cell["block"], cell["n"], seed,
+                json.loads((cell_dir(out, cell, seed, labels=LABELS) / "results.json").read_text()))
+               for cell in cells for seed in seeds]
     print(report(records, out))
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 

@@ -13,7 +13,6 @@ the spaces only (evaluate them with this project's LQR envs).
 """
 from __future__ import annotations
 
-import contextlib
 import time
 from pathlib import Path
 
@@ -21,57 +20,24 @@ import hydra
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig
 
-from torchrl_wbrm.data import make_offline_datasets
+from torchrl_wbrm.data.tasks import get_task
 from torchrl_wbrm.training.config import register_configs
 
 register_configs()
 
 
-@contextlib.contextmanager
-def _recorded_collections(module):
-    """Record what ``module.collect_transitions`` returns, in call order (the data modules collect the behaviour
-    part(s) first and the expert last), so the whole episodes behind D, S^b and S^e can be written out."""
-    original, calls = module.collect_transitions, []
-
-    def recording(*args, **kwargs):
-        out = original(*args, **kwargs)
-        calls.append(out)
-        return out
-
-    module.collect_transitions = recording
-    try:
-        yield calls
-    finally:
-        module.collect_transitions = original
-
-
 def _write_minari(cfg, out: Path) -> None:
-    import numpy as np
-    import torch
-    from gymnasium import spaces
-
-    from torchrl_wbrm.data import lqr as lqr_data, mountain_car as mc_data
     from torchrl_wbrm.data.minari_data import transitions_to_episodes, write_minari_dataset
 
-    module = lqr_data if cfg.env.kind == "lqr" else mc_data
-    with _recorded_collections(module) as calls:
-        datasets = make_offline_datasets(cfg.env, seed=cfg.seed, storage=cfg.storage)
-    if len(calls) < 2:
-        raise RuntimeError(f"Expected a behaviour and an expert collection, recorded {len(calls)}.")
-    behaviour, expert = torch.cat(calls[:-1], 0), calls[-1]
+    task = get_task(cfg.env)
+    datasets, behaviour, expert = task.recorded_collections(seed=cfg.seed, storage=cfg.storage)
     sizes = datasets.sizes()
     if behaviour.shape[0] != sizes["transitions"] + sizes["behaviour_samples"] or expert.shape[0] != sizes["expert_samples"]:
         raise RuntimeError(f"The recorded collections ({behaviour.shape[0]} behaviour, {expert.shape[0]} expert "
                            f"steps) are not the sets' {sizes}.")
     namespace = cfg.minari_namespace or cfg.env.name
     kind = cfg.env.kind
-    if kind == "mountain_car":
-        env_kwargs = {"env": "MountainCarContinuous-v0", "eval_env": "MountainCarContinuous-v0"}
-    else:
-        obs_dim, act_dim = behaviour["observation"].shape[-1], behaviour["action"].shape[-1]
-        bound = float(cfg.env.lqr.action_bound)
-        env_kwargs = {"observation_space": spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
-                      "action_space": spaces.Box(-bound, bound, (act_dim,), np.float32)}
+    env_kwargs = task.minari_env_kwargs(behaviour)  # a gymnasium id, or (LQR) the spaces only
     written = {}
     for part, data in (("expert", expert), ("behaviour", behaviour)):
         dataset_id = f"{namespace}/{part}-v0"
@@ -91,8 +57,10 @@ def main(cfg: DictConfig) -> None:
     start = time.perf_counter()
     if cfg.format not in ("torchrl", "minari"):
         raise ValueError(f"format={cfg.format!r} is not allowed: choose 'torchrl' or 'minari'.")
-    if cfg.env.kind == "minari":
-        raise ValueError("env=minari reads Minari datasets; make_dataset collects the project's own envs.")
+    task = get_task(cfg.env)
+    if not task.collects_data:
+        raise ValueError(f"env={cfg.env.name} (env.kind={cfg.env.kind}) reads its datasets; make_dataset collects "
+                         f"the project's own envs.")
     out = Path(cfg.out)
     if not out.is_absolute():
         out = Path(get_original_cwd()) / out
@@ -100,7 +68,7 @@ def main(cfg: DictConfig) -> None:
         _write_minari(cfg, out)
         print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
         return
-    datasets = make_offline_datasets(cfg.env, seed=cfg.seed, storage=cfg.storage)
+    datasets = task.make_datasets(seed=cfg.seed, storage=cfg.storage)
     datasets.save(out)
     print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
     print(datasets.summary())

@@ -5,13 +5,14 @@
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
     python recipes/paper_tables.py --report-only      # rebuild tables.md and paper_tables.png from finished runs
 
-The table budget (``TABLE_BUDGET``, the same for every algorithm, to fit the whole grid in an hour on 2 cores):
-2×128 networks and 2,000 steps (the main recipe's default is 2×256 and 3,000), CQL with 4 random actions per state
-(torchrl's default 10 made CQL alone take half the hour). Everything else is ``configs/wbrm_offline.yaml``.
+The table budget is ``torchrl_wbrm.training.runs.TABLE_BUDGET`` (the same for every algorithm, to fit the whole
+grid in an hour on 2 cores: 2×128 networks and 2,000 steps, CQL with 4 random actions per state; ``--quick``:
+``TABLE_QUICK_BUDGET``). Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's
+(``torchrl_wbrm.algos.ALGOS``).
 
-It launches one Hydra multirun of ``recipes/wbrm_offline.py`` per environment through the local joblib launcher
-(``algo=...`` x ``seed=...``; every algorithm sees the same data for a given seed, collected once into a
-``data_cache``), then writes ``tables.md``:
+Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: local
+processes, or a Hydra launcher with ``--launcher``) into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the
+same data for a given seed, collected once into a ``data_cache``. Then it writes ``tables.md``:
 Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and experiment, beside the exact optimum and the
 paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
 mean(Q̂ − Q*) on behaviour and expert data, and Table 3 (MountainCar: mean return over 100 episodes ± 95% CI).
@@ -22,11 +23,8 @@ import argparse
 import json
 import os
 import time
-import subprocess
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 PAPER_TABLE_2 = {  # Table 2 of the paper (one run each, no error bars)
     "dqn": (85.09, 84.32, 84.57),
     "ddpg": (84.74, 85.49, 86.20),
@@ -34,39 +32,28 @@ PAPER_TABLE_2 = {  # Table 2 of the paper (one run each, no error bars)
     "wbrm": (86.65, 86.74, 87.10),
 }
 PAPER_TABLE_3 = {"dqn": 94.67, "ddpg": 95.29, "mabo": 94.78, "wbrm": 95.51}
-TABLE_BUDGET = [
-    "q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000", "q.eval_every=1000",
-    "eval.train_episodes=200", "baselines.cql.num_random=4",
-]
-QUICK = [
-    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
-    "env.mountain_car_data.expert_transitions=300", "env.mountain_car_data.behaviour_transitions=1200",
-    "ratio.steps=10", "ratio.eval_every=5", "ratio.batch_size=64", "q.steps=10", "q.eval_every=10",
-    "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "eval.episodes=20", "eval.train_episodes=1",
-    "eval.q_samples=200",
-]
+#: the run directory of a cell: <out>/<env>/<algo>/seed<seed>
+LABELS = ("env", "method")
 
 
 def available_algos() -> list[str]:
-    return sorted(p.stem for p in (ROOT / "configs" / "algo").glob("*.yaml"))
+    from torchrl_wbrm.algos import algo_names
+
+    return sorted(algo_names())
 
 
-def launch(env: str, algos: list[str], seeds: int, out: Path, jobs: int, extra: list[str], quick: bool,
-           launcher: str = "joblib", launcher_args: list[str] = ()) -> None:
-    if env == "mountain_car":  # the paper's 100 evaluation episodes (2 in the smoke version); 5 at training time
-        extra = [o for o in extra if not o.startswith(("eval.episodes=", "eval.train_episodes="))]
-        extra += [f"eval.episodes={2 if quick else 100}", f"eval.train_episodes={1 if quick else 5}"]
-    cmd = [
-        sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m",
-        f"hydra/launcher={launcher}", *([f"hydra.launcher.n_jobs={jobs}"] if launcher == "joblib" else []),
-        *launcher_args, "threads=1",
-        f"env={env}", f"algo={','.join(algos)}", f"seed={','.join(str(s) for s in range(seeds))}",
-        "logger=none", "plots=false", "checkpoint_every=0", f"data_cache={out / 'data_cache'}",
-        f"hydra.sweep.dir={out / env}", "hydra.sweep.subdir=${algo}_seed${seed}",
-        *extra,
-    ]
-    print("+", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "MPLBACKEND": "Agg"})
+def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool) -> list[dict]:
+    """One cell per (env, algorithm); every cell of an env and seed shares one data collection (``data_cache``)."""
+    cells = []
+    for env in envs:
+        extra = []
+        if env == "mountain_car":  # the paper's 100 evaluation episodes (2 in the smoke version); 5 at training time
+            extra = [f"eval.episodes={2 if quick else 100}", f"eval.train_episodes={1 if quick else 5}"]
+        for algo in algos:
+            cells.append({"env": env, "method": algo, "overrides": [
+                f"env={env}", f"algo={algo}", "logger=none", "plots=false", "checkpoint_every=0",
+                f"data_cache={out / 'data_cache'}", *extra]})
+    return cells
 
 
 def tables(out: Path) -> str:
@@ -150,12 +137,13 @@ def plot(out: Path) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algos", nargs="+", default=None, help=f"default: all of configs/algo ({available_algos()})")
+    parser.add_argument("--algos", nargs="+", default=None, help=f"default: every registered algo ({available_algos()})")
     parser.add_argument("--envs", nargs="+", default=["lqr_exp1", "lqr_exp2", "lqr_exp3", "mountain_car"])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--jobs", type=int, default=2, help="parallel runs of the joblib launcher")
-    parser.add_argument("--launcher", default="joblib",
-                        help="Hydra launcher: joblib (local), submitit_local, submitit_slurm, ray (pip install -e '.[sweeps]')")
+    parser.add_argument("--jobs", type=int, default=2, help="parallel local runs")
+    parser.add_argument("--launcher", default=None,
+                        help="a Hydra launcher instead of local processes: submitit_local, submitit_slurm, ray "
+                             "(pip install -e '.[sweeps]')")
     parser.add_argument("--launcher-args", nargs="*", default=[],
                         help="launcher overrides, e.g. hydra.launcher.partition=cpu hydra.launcher.timeout_min=30")
     parser.add_argument("--quick", action="store_true")
@@ -166,12 +154,15 @@ def main() -> None:
     algos = args.algos or available_algos()
     unknown = sorted(set(algos) - set(available_algos()))
     if unknown:
-        raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (configs/algo/).")
+        raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (torchrl_wbrm/algos/).")
     if not args.report_only:
+        from torchrl_wbrm.training.runs import TABLE_BUDGET, TABLE_QUICK_BUDGET, run_cells
+
+        os.environ.setdefault("MPLBACKEND", "Agg")
         start = time.perf_counter()
-        for env in args.envs:
-            launch(env, algos, 1 if args.quick else args.seeds, out, args.jobs, QUICK if args.quick else TABLE_BUDGET,
-                   args.quick, args.launcher, args.launcher_args)
+        run_cells(build_cells(args.envs, algos, out, args.quick), range(1 if args.quick else args.seeds),
+                  TABLE_QUICK_BUDGET if args.quick else TABLE_BUDGET, out, jobs=args.jobs, labels=LABELS,
+                  launcher=args.launcher, launcher_args=args.launcher_args)
         (out / "wall_seconds.json").write_text(json.dumps({"wall_seconds": time.perf_counter() - start,
                                                            "envs": args.envs, "algos": algos, "seeds": args.seeds}))
     text = tables(out)

@@ -27,17 +27,6 @@ import argparse
 import os
 from pathlib import Path
 
-STUDY_BUDGET = [
-    "ratio.steps=1000",
-    "q.steps=2000",
-    "q.eval_every=2000",
-    "eval.episodes=1000",
-    "eval.q_samples=5000",
-    "logger=none",
-    "plots=false",
-    "checkpoint_every=0",
-]
-
 WEIGHTING = {
     "unweighted": ["ratio.source=none"],
     "learned ŵ (paper)": ["ratio.source=learned"],
@@ -173,9 +162,9 @@ def main() -> None:
     out = Path(args.out)
     cells = build_cells(args.quick)
     seeds = range(1 if args.quick else args.seeds)
-    from torchrl_wbrm.training.runs import QUICK_BUDGET, run_cells
+    from torchrl_wbrm.training.runs import QUICK_BUDGET, WEIGHTING_BUDGET, run_cells
 
-    budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
+    budget = QUICK_BUDGET if args.quick else WEIGHTING_BUDGET
 
     run_cells(cells, seeds, budget, out, jobs=args.jobs)
     text = tables(out)

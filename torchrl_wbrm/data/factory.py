@@ -11,14 +11,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from torchrl_wbrm.data.datasets import OfflineDatasets
-from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
-from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets
-from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
+from torchrl_wbrm.data.lqr import LQRDataConfig
+from torchrl_wbrm.data.minari_data import MinariDataConfig
+from torchrl_wbrm.data.mountain_car import MountainCarDataConfig
+from torchrl_wbrm.data.tasks import TASKS, get_task, to_dataclass
 from torchrl_wbrm.envs import LQRConfig
 
 __all__ = ["EnvConfig", "ENV_KINDS", "make_offline_datasets", "cached_offline_datasets"]
 
-ENV_KINDS = ("lqr", "mountain_car", "minari")
+#: the env kinds, one per registered task (:data:`torchrl_wbrm.data.tasks.TASKS`)
+ENV_KINDS = tuple(TASKS)
 
 
 @dataclass
@@ -27,7 +29,8 @@ class EnvConfig:
 
     Attributes:
         name: a label for logs and tables (``lqr_exp1``, ``mountain_car``, ...).
-        kind: ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two local Minari datasets, ``minari``).
+        kind: the task (:data:`~torchrl_wbrm.data.tasks.TASKS`): ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two
+            local Minari datasets, ``minari``).
         lqr: the LQR system (any F, G, R; the paper's three are ``configs/env/lqr_exp{1,2,3}.yaml``).
         lqr_data: LQR dataset sizes and policies.
         mountain_car_data: MountainCar dataset sizes and policies.
@@ -42,51 +45,14 @@ class EnvConfig:
     minari: MinariDataConfig = field(default_factory=MinariDataConfig)
 
     def __post_init__(self):
-        if self.kind not in ENV_KINDS:
-            raise ValueError(f"env.kind must be one of {ENV_KINDS}, got {self.kind!r}.")
-
-
-def _to_dataclass(cls, value):
-    """Accept the dataclass itself or an OmegaConf/dict node of its fields."""
-    if isinstance(value, cls):
-        return value
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(value, DictConfig):
-        value = OmegaConf.to_container(value, resolve=True)
-    return cls(**value)
+        if self.kind not in TASKS:
+            raise ValueError(f"env.kind must be one of {tuple(TASKS)}, got {self.kind!r}.")
 
 
 def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
-    """Collect the three sets (``D``, ``S^b``, ``S^e``) for ``env`` with ``seed``."""
-    env = _to_dataclass(EnvConfig, env)
-    if env.kind == "lqr":
-        data = _to_dataclass(LQRDataConfig, env.lqr_data)
-        storage = data.storage if storage == "lazy" else storage  # env.lqr_data.storage=memmap: buffers on disk
-        if data.dataset_dir:  # a saved dataset (e.g. a large one made once), verified on load
-            return OfflineDatasets.load(data.dataset_dir, storage=storage, scratch_dir=scratch_dir)
-        return make_lqr_datasets(
-            _to_dataclass(LQRConfig, env.lqr),
-            data,
-            seed=seed,
-            storage=storage,
-            scratch_dir=scratch_dir,
-        )
-    if env.kind == "minari":  # read from disk, never downloaded
-        return make_minari_datasets(_to_dataclass(MinariDataConfig, env.minari), seed=seed, storage=storage,
-                                    scratch_dir=scratch_dir)
-    return make_mountain_car_datasets(
-        _to_dataclass(MountainCarDataConfig, env.mountain_car_data), seed=seed, storage=storage, scratch_dir=scratch_dir
-    )
-
-
-def _expected_sizes(env: EnvConfig) -> dict[str, int]:
-    """The set sizes ``env``'s data config asks for: ``{"behaviour": |D| + |S^b|, "expert_samples": |S^e|}``."""
-    if env.kind == "lqr":
-        data, horizon = _to_dataclass(LQRDataConfig, env.lqr_data), _to_dataclass(LQRConfig, env.lqr).horizon
-        return {"behaviour": data.behaviour_episodes * horizon, "expert_samples": data.expert_episodes * horizon}
-    data = _to_dataclass(MountainCarDataConfig, env.mountain_car_data)
-    return {"behaviour": data.behaviour_transitions, "expert_samples": data.expert_transitions}
+    """Collect (or read) the three sets (``D``, ``S^b``, ``S^e``) for ``env`` with ``seed``: its task's
+    :meth:`~torchrl_wbrm.data.tasks.Task.make_datasets`."""
+    return get_task(to_dataclass(EnvConfig, env)).make_datasets(seed=seed, storage=storage, scratch_dir=scratch_dir)
 
 
 def _check_cache_entry(target: Path, request: dict, expected: dict[str, int]) -> OfflineDatasets:
@@ -116,13 +82,14 @@ def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.Pa
     by renames, and a one-line warning says so. Runs in parallel may race to write one entry: each writes a
     private folder and renames it into place; a loser loads the winner's copy (same config, same seed).
     """
-    env = _to_dataclass(EnvConfig, env)
-    if env.kind == "minari":  # already on disk, verified by Minari's reader: no second copy
-        return make_offline_datasets(env, seed=seed)
+    env = to_dataclass(EnvConfig, env)
+    task = get_task(env)
+    expected = task.expected_sizes()
+    if expected is None:  # already on disk (Minari), verified by its reader: no second copy
+        return task.make_datasets(seed=seed)
     request = json.loads(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str))
     key = hashlib.sha1(json.dumps(request, sort_keys=True).encode()).hexdigest()
     target = Path(cache_dir) / f"{env.name}_seed{seed}_{key[:12]}"
-    expected = _expected_sizes(env)
     if target.is_dir():
         try:
             return _check_cache_entry(target, request, expected)
@@ -131,7 +98,7 @@ def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.Pa
             reason = err
     else:
         reason = None
-    datasets = make_offline_datasets(env, seed=seed)
+    datasets = task.make_datasets(seed=seed)
     datasets.metadata["cache_request"] = request
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=target.parent, prefix=".tmp_"))

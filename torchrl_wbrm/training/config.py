@@ -7,27 +7,22 @@ again by :func:`validate_config` (allowed names, ranges), which names the settin
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
 from typing import List, Optional
 
 from hydra.core.config_store import ConfigStore
 
+from torchrl_wbrm.algos import ALGOS, store_algo_configs
 from torchrl_wbrm.data import EnvConfig
+from torchrl_wbrm.data.tasks import get_task
 
 __all__ = [
     "BaselinesConfig",
-    "CQLConfig",
-    "DDPGConfig",
-    "DQNConfig",
     "EvalConfig",
-    "FQIConfig",
-    "IQLConfig",
-    "MABOConfig",
     "LoggerConfig",
     "MakeDatasetConfig",
     "QConfig",
     "RatioConfig",
-    "TD3BCConfig",
     "WBRMConfig",
     "register_configs",
     "validate_config",
@@ -194,101 +189,22 @@ class LoggerConfig:
     group: Optional[str] = None
 
 
-@dataclass
-class TD3BCConfig:
-    """TD3+BC (Fujimoto & Gu 2021) with torchrl's ``TD3BCLoss``: ``alpha`` (α of λ = α / mean|Q|), target policy
-    smoothing ``policy_noise`` clipped at ``noise_clip`` (action units), the critic's ``loss_function``."""
-
-    alpha: float = 2.5
-    policy_noise: float = 0.2
-    noise_clip: float = 0.5
-    loss_function: str = "l2"
-
-
-@dataclass
-class DDPGConfig:
-    """Offline DDPG (Lillicrap et al. 2016) with torchrl's ``DDPGLoss``."""
-
-    loss_function: str = "l2"
+def _baselines_config() -> type:
+    """``BaselinesConfig``: one field ``<name>`` per registered algo with settings of its own (its dataclass), in
+    registration order; built from :data:`torchrl_wbrm.algos.ALGOS` when this module is imported."""
+    fields = [(spec.name, spec.config, field(default_factory=spec.config)) for spec in ALGOS.values()
+              if spec.config is not None]
+    cls = make_dataclass("BaselinesConfig", fields)
+    cls.__module__ = __name__
+    cls.__doc__ = (
+        "Settings of the algorithms that have their own (``baselines.<name>``, one field per algo of "
+        ":data:`torchrl_wbrm.algos.ALGOS` with a config dataclass); shared settings (networks, lr, steps, batch size, "
+        "γ, target τ, actor delay) come from ``q``, so every method gets the same networks, data and budget."
+    )
+    return cls
 
 
-@dataclass
-class CQLConfig:
-    """CQL(H) for continuous actions (Kumar et al. 2020) with torchrl's ``CQLLoss`` and a TanhNormal actor.
-
-    ``min_q_weight`` is the conservative penalty's weight (the paper's α), ``temperature`` its log-sum-exp
-    temperature, ``num_random`` the uniform actions per state, ``with_lagrange``/``lagrange_thresh`` the
-    Lagrangian variant, ``alpha_init`` the initial entropy coefficient (tuned as in SAC).
-    """
-
-    min_q_weight: float = 1.0
-    temperature: float = 1.0
-    num_random: int = 10
-    with_lagrange: bool = False
-    lagrange_thresh: float = 5.0
-    alpha_init: float = 1.0
-    loss_function: str = "l2"
-
-
-@dataclass
-class IQLConfig:
-    """IQL (Kostrikov et al. 2022) with torchrl's ``IQLLoss``: the value's ``expectile`` τ and the advantage-weighted
-    regression's inverse ``temperature`` β."""
-
-    expectile: float = 0.7
-    temperature: float = 3.0
-    loss_function: str = "l2"
-
-
-@dataclass
-class DQNConfig:
-    """DQN (Mnih et al. 2015) with torchrl's ``DQNLoss`` on a discretised action box: ``num_bins`` values per action
-    coordinate (the env's ``ActionDiscretizer`` grid, bin medians), one categorical over the ``num_bins ** m`` joint
-    actions."""
-
-    num_bins: int = 21
-    loss_function: str = "l2"
-
-
-@dataclass
-class FQIConfig:
-    """Fitted Q iteration (Ernst et al. 2005): regress Q onto a frozen target for ``target_update_every`` steps
-    (``HardUpdate``), then refresh the target."""
-
-    target_update_every: int = 50
-
-
-@dataclass
-class MABOConfig:
-    """MABO (Xie & Jiang 2020) with :class:`~torchrl_wbrm.objectives.MABOLoss`: the adversary class
-    (``"linear"``: the span of :class:`~torchrl_wbrm.modules.PolynomialFeatures` of degree ``features_degree``,
-    exact inner max; ``"network"``: ``B·tanh`` of an MLP trained by ascent), its bound ``w_bound``, the L2 penalty
-    ``critic_l2``, the adversary's ``critic_lr`` and ``critic_num_cells``, ``critic_steps`` ascent steps per Q step
-    (network only), and ``delay_value`` (frozen target Q, ``SoftUpdate``, rather than the paper's gradient through
-    both Q terms). Defaults: the variant that did least badly on LQR exp1 (configs/algo/mabo.yaml)."""
-
-    adversary: str = "linear"
-    features_degree: int = 2
-    w_bound: float = 1.0
-    critic_l2: float = 0.0
-    critic_lr: float = 1e-3
-    critic_num_cells: List[int] = field(default_factory=lambda: [256, 256])
-    critic_steps: int = 1
-    delay_value: bool = True
-
-
-@dataclass
-class BaselinesConfig:
-    """Settings of the baseline algorithms (``algo=...``); shared settings (networks, lr, steps, batch size, γ,
-    target τ, actor delay) come from ``q``, so every method gets the same networks, data and budget."""
-
-    td3bc: TD3BCConfig = field(default_factory=TD3BCConfig)
-    ddpg: DDPGConfig = field(default_factory=DDPGConfig)
-    cql: CQLConfig = field(default_factory=CQLConfig)
-    iql: IQLConfig = field(default_factory=IQLConfig)
-    dqn: DQNConfig = field(default_factory=DQNConfig)
-    fqi: FQIConfig = field(default_factory=FQIConfig)
-    mabo: MABOConfig = field(default_factory=MABOConfig)
+BaselinesConfig = _baselines_config()
 
 
 @dataclass
@@ -297,11 +213,10 @@ class WBRMConfig:
 
     Attributes:
         env: the environment and its data (group ``env``).
-        algo: ``"wbrm"`` (the two stages), ``"brm"`` (stage 2 alone with w ≡ 1: the unweighted ablation; the
-            same as ``wbrm`` with ``ratio.source=none``), ``"bc"`` (behaviour cloning of the expert's actions in S^e with torchrl's ``BCLoss``, a
-            reference: on LQR the expert is the optimum plus small noise) or a baseline on D: ``"td3bc"``,
-            ``"ddpg"``, ``"cql"``, ``"iql"``, ``"dqn"``, ``"fqi"``, ``"mabo"`` (group ``algo``; see
-            :mod:`torchrl_wbrm.training.algos`).
+        algo: a name of :data:`torchrl_wbrm.algos.ALGOS` (group ``algo``, one file per algorithm under
+            ``torchrl_wbrm/algos/``): ``"wbrm"`` (the two stages), ``"brm"`` (stage 2 alone with w ≡ 1: the
+            unweighted ablation; the same as ``wbrm`` with ``ratio.source=none``), ``"bc"`` (behaviour cloning of the
+            expert's actions in S^e with torchrl's ``BCLoss``, a reference) or a baseline on D.
         ratio: stage 1. q: stage 2 (and the shared settings of every algo). baselines: per-baseline settings. eval: evaluation. logger: logging (group ``logger``).
         seed: seeds data, initialisation and sampling.
         device: torch device.
@@ -359,9 +274,8 @@ class MakeDatasetConfig:
     minari_namespace: Optional[str] = None
 
 
+#: the settings whose values come from a fixed set; ``algo``'s set is the registry's (:func:`_choices`)
 _CHOICES = {
-    "algo": ("wbrm", "brm", "bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"),
-    "baselines.mabo.adversary": ("network", "linear"),
     "ratio.source": ("learned", "exact", "none"),
     "ratio.divergence": ("basu", "kl"),
     "q.residual": ("squared", "absolute_mean"),
@@ -380,9 +294,14 @@ def _get(cfg, dotted: str):
     return cfg
 
 
+def _choices() -> dict[str, tuple]:
+    """:data:`_CHOICES` with ``algo``'s choices read from the registry now (an algo registered later is valid)."""
+    return {"algo": tuple(ALGOS), **_CHOICES}
+
+
 def validate_config(cfg) -> None:
     """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting."""
-    for key, allowed in _CHOICES.items():
+    for key, allowed in _choices().items():
         value = _get(cfg, key)
         if value not in allowed:
             raise ValueError(f"{key}={value!r} is not allowed: choose one of {list(allowed)}.")
@@ -423,17 +342,10 @@ def validate_config(cfg) -> None:
         raise ValueError(f"q.gamma must lie in (0, 1) or be null, got {cfg.q.gamma}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
-    for key in ("baselines.fqi.target_update_every", "baselines.mabo.w_bound", "baselines.mabo.critic_lr",
-                "baselines.mabo.critic_steps", "baselines.cql.num_random", "baselines.iql.temperature"):
-        if not _get(cfg, key) > 0:
-            raise ValueError(f"{key} must be > 0, got {_get(cfg, key)!r}.")
-    if not 0 < cfg.baselines.iql.expectile < 1:
-        raise ValueError(f"baselines.iql.expectile must lie in (0, 1), got {cfg.baselines.iql.expectile}.")
-    if cfg.baselines.mabo.features_degree not in (1, 2):
-        raise ValueError(f"baselines.mabo.features_degree must be 1 or 2, got {cfg.baselines.mabo.features_degree!r}.")
-    if not cfg.baselines.dqn.num_bins >= 2:
-        raise ValueError(f"baselines.dqn.num_bins must be >= 2, got {cfg.baselines.dqn.num_bins}.")
-    if cfg.ratio.source == "exact" and cfg.env.kind != "lqr":
+    for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)
+        if spec.validate is not None and hasattr(cfg.baselines, spec.name):
+            spec.validate(getattr(cfg.baselines, spec.name), f"baselines.{spec.name}")
+    if cfg.ratio.source == "exact" and not get_task(cfg.env).has_exact_ratio:
         raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
     from torchrl_wbrm.training.guards import validate_run_settings
 
@@ -441,6 +353,18 @@ def validate_config(cfg) -> None:
 
 
 def register_configs() -> None:
+    """Store the recipes' schemas and every registered algo's node of the ``algo`` group (``algo/<name>``: it sets
+    ``algo`` and ``baselines.<name>``) in Hydra's ``ConfigStore``."""
     cs = ConfigStore.instance()
     cs.store(name="base_wbrm_offline", node=WBRMConfig)
     cs.store(name="base_make_dataset", node=MakeDatasetConfig)
+    store_algo_configs(cs, BaselinesConfig)
+
+
+def __getattr__(name: str):
+    """The algos' config dataclasses by their names (``TD3BCConfig``, ...), which lived here before they moved to
+    their algorithm's file under :mod:`torchrl_wbrm.algos`."""
+    for spec in ALGOS.values():
+        if spec.config is not None and spec.config.__name__ == name:
+            return spec.config
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import torch
 
+from torchrl_wbrm.data.tasks import get_task
+
 __all__ = [
     "CONTINUABLE_KEYS",
     "CONTINUABLE_PREFIXES",
@@ -318,37 +320,4 @@ def validate_run_settings(cfg) -> None:
     if cfg.q.maximiser == "sampled" and not cfg.q.num_action_samples >= 1:
         raise ValueError(f"q.num_action_samples must be >= 1, got {cfg.q.num_action_samples!r}.")
     check_device(cfg.device)
-    if cfg.env.kind == "lqr":
-        data = cfg.env.lqr_data
-        for key in ("parallel_envs", "expert_episodes"):
-            if not getattr(data, key) >= 1:
-                raise ValueError(f"env.lqr_data.{key} must be >= 1, got {getattr(data, key)!r}.")
-        if not data.behaviour_episodes >= 2:
-            raise ValueError(f"env.lqr_data.behaviour_episodes must be >= 2 (split into D and S^b), got {data.behaviour_episodes!r}.")
-        if not 0 < data.ratio_fraction < 1:
-            raise ValueError(f"env.lqr_data.ratio_fraction must lie in (0, 1), got {data.ratio_fraction!r}.")
-        if not 0 <= data.expert_tau <= 1:
-            raise ValueError(f"env.lqr_data.expert_tau must lie in [0, 1], got {data.expert_tau!r}.")
-        if not data.behaviour_noise_std >= 0:
-            raise ValueError(f"env.lqr_data.behaviour_noise_std must be >= 0, got {data.behaviour_noise_std!r}.")
-        lqr = cfg.env.lqr
-        if lqr.reward_clip is not None:
-            if lqr.reward_clip != 0:
-                raise ValueError(
-                    f"env.lqr.reward_clip={lqr.reward_clip!r}: the exact return (the evaluation's ground truth) is "
-                    f"implemented for a clip at 0 (the paper's) or none (env.lqr.reward_clip=null)."
-                )
-            if lqr.state_dim > 2:
-                raise ValueError(
-                    f"env.lqr: a {lqr.state_dim}-dimensional state with the reward clipped at 0 is not supported: the "
-                    f"exact clipped return (the evaluation's ground truth) is implemented for state dimension <= 2. "
-                    f"Set env.lqr.reward_clip=null to train and score on the unclipped reward, whose exact return "
-                    f"holds in any dimension."
-                )
-    elif cfg.env.kind == "mountain_car":
-        data = cfg.env.mountain_car_data
-        for key in ("parallel_envs", "expert_transitions", "behaviour_transitions"):
-            if not getattr(data, key) >= 1:
-                raise ValueError(f"env.mountain_car_data.{key} must be >= 1, got {getattr(data, key)!r}.")
-        if not 0 < data.ratio_fraction < 1:
-            raise ValueError(f"env.mountain_car_data.ratio_fraction must lie in (0, 1), got {data.ratio_fraction!r}.")
+    get_task(cfg.env).validate()  # the env's data settings, and what its ground truth supports

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import matplotlib
@@ -10,21 +11,28 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from torchrl_wbrm.algos import ALGOS  # noqa: E402
+
 __all__ = ["LOSS_TITLES", "plot_ci_rows", "plot_run"]
 
-#: The title of the training-loss panel per algo (its losses are every ``loss*`` figure the algo's step reports).
-LOSS_TITLES = {
-    "wbrm": "stage 2: weighted Bellman residual",
-    "brm": "unweighted Bellman residual (w ≡ 1)",
-    "fqi": "fitted Q iteration: regression loss",
-    "mabo": "MABO: Bellman loss against the adversary",
-    "bc": "behaviour cloning loss",
-    "td3bc": "TD3+BC: critic and actor losses",
-    "ddpg": "DDPG: critic and actor losses",
-    "cql": "CQL: losses",
-    "iql": "IQL: losses",
-    "dqn": "DQN: TD loss",
-}
+class _LossTitles(Mapping):
+    """algo name -> the title of its training-loss panel (its losses are every ``loss*`` figure the algo's step
+    reports): each registered algo's ``loss_title``, read from the registry when asked."""
+
+    def __getitem__(self, name: str) -> str:
+        if name not in ALGOS:
+            raise KeyError(name)
+        return ALGOS[name].loss_title
+
+    def __iter__(self):
+        return iter(ALGOS)
+
+    def __len__(self) -> int:
+        return len(ALGOS)
+
+
+#: The title of the training-loss panel per algo (:class:`~torchrl_wbrm.algos.AlgoSpec`'s ``loss_title``).
+LOSS_TITLES = _LossTitles()
 
 
 def _finite(values: list) -> list[float]:

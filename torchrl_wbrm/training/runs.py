@@ -1,11 +1,36 @@
-"""Run the main recipe's config in-process from Hydra overrides (the studies' unit of work)."""
+"""The studies' one job runner and their budgets: run the main recipe's config in-process from Hydra overrides.
+
+A study (``recipes/paper_tables.py``, ``ablations.py``, ``weighting_study.py``, ``convergence_study.py``,
+``q_accuracy_study.py``) is a list of *cells*, each a dict of labels and ``"overrides"``; :func:`run_cells` runs every
+(cell, seed) with a budget from here (the overrides that come first), locally in parallel processes or through a Hydra
+launcher (Slurm, Ray), and skips the runs whose ``results.json`` exists, so a study resumes where it stopped.
+"""
 from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
-__all__ = ["QUICK_BUDGET", "cell_dir", "run_cell", "run_cells", "run_overrides"]
+__all__ = [
+    "CONVERGENCE_BUDGET",
+    "CONVERGENCE_QUICK_BUDGET",
+    "LABELS",
+    "QUICK_BUDGET",
+    "QUIET",
+    "TABLE_BUDGET",
+    "TABLE_QUICK_BUDGET",
+    "WEIGHTING_BUDGET",
+    "cell_dir",
+    "run_cell",
+    "run_cells",
+    "run_overrides",
+]
+
+#: What no study run writes: no logger, no plots, a checkpoint only at the end of each stage.
+QUIET = ["logger=none", "plots=false", "checkpoint_every=0"]
 
 #: The studies' smoke budget (``--quick``, run in CI): tiny LQR data, networks, budgets and evaluations.
 QUICK_BUDGET = [
@@ -20,18 +45,57 @@ QUICK_BUDGET = [
     "q.actor_num_cells=[16,16]",
     "eval.episodes=50",
     "eval.q_samples=300",
-    "logger=none",
-    "plots=false",
-    "checkpoint_every=0",
+    *QUIET,
 ]
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+#: The budget of the paper's tables and of the ablations (the same for every algorithm, to fit the whole grid of
+#: ``recipes/paper_tables.py`` in an hour on 2 cores): 2×128 networks and 2,000 steps (the recipe's default is 2×256
+#: and 3,000), CQL with 4 random actions per state (torchrl's default 10 made CQL alone take half the hour).
+TABLE_BUDGET = [
+    "q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000", "q.eval_every=1000",
+    "eval.train_episodes=200", "baselines.cql.num_random=4",
+]
+
+#: Their smoke version (``--quick``): tiny LQR and MountainCar data, 10 steps each stage, 16-unit networks.
+TABLE_QUICK_BUDGET = [
+    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
+    "env.mountain_car_data.expert_transitions=300", "env.mountain_car_data.behaviour_transitions=1200",
+    "ratio.steps=10", "ratio.eval_every=5", "ratio.batch_size=64", "q.steps=10", "q.eval_every=10",
+    "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "eval.episodes=20", "eval.train_episodes=1",
+    "eval.q_samples=200",
+]
+
+#: ``recipes/weighting_study.py``: 1,000 ratio steps, 2,000 Q steps, 1,000 evaluation episodes.
+WEIGHTING_BUDGET = [
+    "ratio.steps=1000",
+    "q.steps=2000",
+    "q.eval_every=2000",
+    "eval.episodes=1000",
+    "eval.q_samples=5000",
+    *QUIET,
+]
+
+#: ``recipes/convergence_study.py``: the evaluation sizes and the untempered, unclipped stored ratio (each cell sets
+#: its own data sizes and step budgets).
+CONVERGENCE_BUDGET = [*QUIET, "eval.episodes=200", "eval.q_samples=5000", "eval.train_episodes=50", "ratio.mix=0.0",
+                      "ratio.clip=null"]
+
+#: Its smoke version (``--quick``): 16-unit networks, small evaluations.
+CONVERGENCE_QUICK_BUDGET = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[16,16]",
+                            "eval.q_samples=300", "eval.episodes=50"]
+
+#: The labels of a cell that name its run directory (:func:`cell_dir`) and go into its results under ``"study"``.
+LABELS = ("block", "env", "setting", "method")
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG_DIR = ROOT / "configs"
 
 
 def run_overrides(
     overrides: list[str], run_dir: str | os.PathLike, *, extra_results: dict | None = None, config_name: str = "wbrm_offline"
 ) -> dict:
-    """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results.
+    """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
+    (with the run's ``wall_seconds``).
 
     A run whose ``results.json`` exists is not run again (its results are read back, a diverged run's too), and
     one with only a checkpoint resumes from it, so an interrupted study resumes where it stopped. ``extra_results``
@@ -48,6 +112,7 @@ def run_overrides(
     done = run_dir / "results.json"
     if done.is_file():
         return json.loads(done.read_text())
+    start = time.perf_counter()
     torch.set_num_threads(1)
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
@@ -56,32 +121,73 @@ def run_overrides(
     resume = (run_dir / "checkpoint.pt").is_file()
     results = WBRMTrainer(cfg, run_dir, progress=False, resume=resume).run()
     results.update(extra_results or {})
+    results["wall_seconds"] = time.perf_counter() - start
     write_json(done, results)
     return results
 
 
-def cell_dir(out: str | os.PathLike, cell: dict, seed: int, *, labels=("block", "env", "setting", "method")) -> Path:
-    """``out/<block>/<env>/<setting>/<method>/seed<seed>``: where one study cell's run for one seed lives."""
+def cell_dir(out: str | os.PathLike, cell: dict, seed: int, *, labels=LABELS) -> Path:
+    """``out/<block>/<env>/<setting>/<method>/seed<seed>`` (one path part per label): where one study cell's run for
+    one seed lives."""
     name = "/".join(str(cell[k]) for k in labels).replace(" ", "_")
     return Path(out) / name / f"seed{seed}"
 
 
-def run_cell(cell: dict, seed: int, budget: list[str], out: str, labels=("block", "env", "setting", "method")) -> str:
+def _overrides(cell: dict, seed: int | None, budget: list[str]) -> list[str]:
+    """A cell's overrides after the budget (the cell wins), then its seed."""
+    return [*budget, *cell["overrides"], *([f"seed={seed}"] if seed is not None else [])]
+
+
+def run_cell(cell: dict, seed: int, budget: list[str], out: str, labels=LABELS) -> str:
     """Run one study cell (``cell["overrides"]`` after ``budget``) for one seed; its labels go into the results
     under ``"study"``. Skipped if its results exist."""
     run_dir = cell_dir(out, cell, seed, labels=labels)
-    run_overrides([*budget, *cell["overrides"], f"seed={seed}"], run_dir,
-                  extra_results={"study": {k: cell[k] for k in labels}})
+    run_overrides(_overrides(cell, seed, budget), run_dir, extra_results={"study": {k: cell[k] for k in labels}})
     return str(run_dir)
 
 
-def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLike, *, jobs: int = 2) -> None:
-    """Every (cell, seed) in ``jobs`` parallel processes (one torch thread each), with a tqdm bar."""
+def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLike, *, jobs: int = 2,
+              labels=LABELS, launcher: str | None = None, launcher_args=()) -> None:
+    """Every (cell, seed), each in its :func:`cell_dir`.
+
+    By default in ``jobs`` local processes (joblib; one torch thread each), with a tqdm bar. With ``launcher`` (a
+    Hydra launcher: ``submitit_local``, ``submitit_slurm``, ``ray``; ``pip install -e '.[sweeps]'``) each cell is one
+    Hydra multirun of ``recipes/wbrm_offline.py`` over the seeds, with ``launcher_args`` (e.g.
+    ``hydra.launcher.partition=cpu``); the launcher returns when its jobs have finished, and the cell's labels are then
+    written into each run's results under ``"study"``, as the local runs do.
+    """
+    seeds = list(seeds)
+    work = [(cell, seed) for cell in cells for seed in seeds]
+    print(f"{len(work)} runs ({len(cells)} cells x {len(seeds)} seeds) into {out}", flush=True)
+    if launcher:
+        for cell in cells:
+            _launch_cell(cell, seeds, budget, Path(out), labels, launcher, list(launcher_args))
+        return
     from joblib import Parallel, delayed
     from tqdm.auto import tqdm
 
-    work = [(cell, seed) for cell in cells for seed in seeds]
-    print(f"{len(work)} runs ({len(cells)} cells x {len(list(seeds))} seeds) into {out}", flush=True)
     runner = Parallel(n_jobs=jobs, return_as="generator_unordered")
-    for _ in tqdm(runner(delayed(run_cell)(cell, seed, budget, str(out)) for cell, seed in work), total=len(work)):
+    for _ in tqdm(runner(delayed(run_cell)(cell, seed, budget, str(out), labels) for cell, seed in work),
+                  total=len(work)):
         pass
+
+
+def _launch_cell(cell: dict, seeds: list[int], budget: list[str], out: Path, labels, launcher: str,
+                 launcher_args: list[str]) -> None:
+    from torchrl_wbrm.training.guards import write_json
+
+    todo = [s for s in seeds if not (cell_dir(out, cell, s, labels=labels) / "results.json").is_file()]
+    if not todo:
+        return
+    sweep = cell_dir(out, cell, 0, labels=labels).parent
+    cmd = [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m", f"hydra/launcher={launcher}",
+           *launcher_args, *_overrides(cell, None, budget), "threads=1", f"seed={','.join(map(str, todo))}",
+           f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=seed${seed}"]
+    print("+", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "MPLBACKEND": "Agg"})
+    for seed in todo:
+        path = cell_dir(out, cell, seed, labels=labels) / "results.json"
+        if path.is_file():
+            results = json.loads(path.read_text())
+            results["study"] = {k: cell[k] for k in labels}
+            write_json(path, results)

@@ -7,8 +7,11 @@ pieces (:class:`~torchrl_wbrm.ratio.DensityRatioFitter`, stepped and evaluated f
 :func:`~torchrl_wbrm.ratio.store_density_ratio`), which a script can use without a trainer. Stage 2 trains Q (and the actor) with
 :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's ``SoftUpdate`` and periodic evaluation.
 
-Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.training.algos` builds each
-method's loss, optimisers, step function and evaluated policy; stage 1 runs only for ``wbrm`` with a learned ratio.
+Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.algos` (one file per algorithm)
+builds each method's loss, optimisers, step function and evaluated policy; stage 1 runs only for an algo registered
+with ``fits_ratio`` (``wbrm``) and a learned ratio. Everything env-specific (the data, the action box, γ, the
+evaluator and the ground truth) is the env's :class:`~torchrl_wbrm.data.tasks.Task`: the trainer never asks which env
+it runs.
 
 Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
 evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
@@ -29,29 +32,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
-from torchrl.data import Bounded
 from tqdm.auto import tqdm
 
-from torchrl_wbrm.data import (
-    OfflineDatasets,
-    cached_offline_datasets,
-    collect_transitions,
-    make_offline_datasets,
-    make_replay_buffer,
-)
+from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
 from torchrl_wbrm.data.datasets import split_by_episode
-from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
-from torchrl_wbrm.evaluation import evaluate_returns, lqr_paired_regret, q_error, ratio_error
+from torchrl_wbrm.data.tasks import Evaluator, Task, get_task
+from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
-from torchrl_wbrm.policies import (
-    lqr_true_density_ratio,
-    make_lqr_behaviour,
-    make_lqr_expert,
-    make_mountain_car_env,
-)
-from torchrl_wbrm.training.algos import Algo, AlgoContext, adam_options, build_algo
+from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.logging import configure_console, log_run_summary
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
@@ -148,36 +138,22 @@ class WBRMTrainer:
             self._load_checkpoint()
 
     # ------------------------------------------------------------------ setup
-    @property
-    def is_lqr(self) -> bool:
-        return self.cfg.env.kind == "lqr"
-
     def _setup_data(self) -> None:
         t0 = time.perf_counter()
+        self.task: Task = get_task(self.cfg.env)  # everything env-specific: data, action box, γ, evaluator, truth
         if self.cfg.data_cache:
             self.datasets: OfflineDatasets = cached_offline_datasets(self.cfg.env, seed=self.cfg.seed, cache_dir=self.cfg.data_cache)
         else:
-            self.datasets = make_offline_datasets(self.cfg.env, seed=self.cfg.seed)
+            self.datasets = self.task.make_datasets(seed=self.cfg.seed)
+        self.task.attach(self.datasets)
         self.data_seconds = time.perf_counter() - t0
         d = self.datasets.transitions[:]
         gen = torch.Generator().manual_seed(self.cfg.seed + 23)
         self.q_train_data, self.q_holdout = split_by_episode(d, self.cfg.q.holdout_fraction, generator=gen)
         self.observation_dim = d["observation"].shape[-1]
         self.action_dim = d["action"].shape[-1]
-        if self.is_lqr:
-            self.lqr_config: LQRConfig = self.cfg.env.lqr
-            self.lqr_env = LQREnv(self.lqr_config)
-            bound = self.lqr_config.action_bound
-            self.action_spec = Bounded(-bound, bound, (self.action_dim,))
-            self.gamma = self.cfg.q.gamma or self.lqr_config.gamma
-        elif self.cfg.env.kind == "minari":  # the dataset's action box (a Discrete action: its one-hot [0, 1]^n)
-            meta = self.datasets.metadata
-            self.action_spec = Bounded(torch.tensor(meta["action_low"]), torch.tensor(meta["action_high"]),
-                                       (self.action_dim,))
-            self.gamma = self.cfg.q.gamma or 0.99
-        else:
-            self.action_spec = Bounded(-1.0, 1.0, (self.action_dim,))
-            self.gamma = self.cfg.q.gamma or 0.99
+        self.action_spec = self.task.action_spec()
+        self.gamma = self.task.gamma(self.cfg.q.gamma)
         # a fingerprint to refuse resuming on different data
         self.data_fingerprint = float(d["observation"][:100].double().sum() + d["action"][:100].double().sum())
 
@@ -185,7 +161,7 @@ class WBRMTrainer:
         rc = self.cfg.ratio
         self.ratio_network = None
         self.ratio_fitter: DensityRatioFitter | None = None
-        if rc.source != "learned" or self.cfg.algo != "wbrm":
+        if rc.source != "learned" or not get_algo(self.cfg.algo).fits_ratio:
             return
         self.ratio_network = DensityRatioNetwork(
             self.observation_dim,
@@ -258,6 +234,7 @@ class WBRMTrainer:
             device=self.device,
             observation_loc=loc,
             observation_scale=scale,
+            task=self.task,
         )
         if qc.compile:  # torch.compile's inductor cache inside the run directory
             os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(self.run_dir / "torch_compile_cache")
@@ -272,28 +249,19 @@ class WBRMTrainer:
         self.q_buffer = None  # built after stage 1, with the weights in it
 
     def _setup_evaluation(self) -> None:
-        ec = self.cfg.eval
-        self.true_ratio = None
-        self.eval_samples = {}
-        if self.is_lqr:
-            env = make_lqr_env(self.lqr_config, batch_size=[min(ec.q_samples, 10_000)], seed=ec.seed + 1)
-            data_cfg = self.cfg.env.lqr_data
-            expert = make_lqr_expert(env, tau=data_cfg.expert_tau)
-            behaviour = make_lqr_behaviour(
-                env, gain_scale=data_cfg.behaviour_gain_scale, noise_std=data_cfg.behaviour_noise_std
-            )
-            n = math.ceil(ec.q_samples / env.batch_size[0] / self.lqr_config.horizon) * env.batch_size[0] * self.lqr_config.horizon
-            for name, policy, seed in (("expert", expert, ec.seed + 2), ("behaviour", behaviour, ec.seed + 3)):
-                self.eval_samples[name] = collect_transitions(env, policy, n, seed=seed)[: ec.q_samples].select(
-                    "observation", "action"
-                )
-            self.true_ratio = lqr_true_density_ratio(env, expert, behaviour)
-        elif self.cfg.env.kind == "minari":  # the datasets' gymnasium env, episodes one by one; built now so a
-            from torchrl_wbrm.data.minari_data import make_minari_eval_env  # missing env fails before training
+        """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
+        self.evaluator: Evaluator = self.task.evaluator(self.cfg.eval)
+        self.eval_samples = self.evaluator.eval_samples
+        self.true_ratio = self.evaluator.true_ratio
 
-            self.minari_env = make_minari_eval_env(self.datasets.metadata)
-        else:  # batched evaluation envs, one car per episode, built on first use (one per episode count)
-            self.mc_envs: dict[int, object] = {}
+    # names kept for scripts and tests written against the trainer (an LQR task's; others raise AttributeError)
+    @property
+    def lqr_env(self):
+        return self.task.lqr_env
+
+    @property
+    def lqr_config(self):
+        return self.task.lqr_config
 
     # ------------------------------------------------------------------ the shared loop
     def _run_stage(
@@ -475,37 +443,9 @@ class WBRMTrainer:
     def _evaluate(self, *, final: bool) -> dict:
         ec = self.cfg.eval
         episodes = ec.episodes if final else ec.train_episodes
-        out: dict = {}
         self.actor.eval()
-        if self.is_lqr:
-            res = lqr_paired_regret(self.lqr_config, self.actor, episodes=episodes, seed=ec.seed)
-            for key in ("return", "regret", "optimal_return_paired"):
-                out[f"{key}"] = res[key].mean
-                out[f"{key}_ci"] = res[key].half_width
-                out[f"{key}_stderr"] = res[key].stderr
-            out["optimal_return_exact"] = res["optimal_return_exact"]
-            for name, samples in self.eval_samples.items() if self.algo.q_value is not None else ():
-                q_hat, action = self.algo.q_value(samples.to(self.device))
-                q_hat = q_hat.cpu()
-                q_star = self.lqr_env.optimal_q(samples["observation"].double(), action.cpu().double())
-                errs = q_error(q_hat, q_star)
-                out[f"q_error_{name}"] = errs["relative_spread_error"]
-                out[f"q_bias_{name}"] = errs["bias"]
-                out[f"q_mean_{name}"] = q_hat.double().mean().item()
-                out[f"q_star_mean_{name}"] = errs["q_true_mean"]
-        elif self.cfg.env.kind == "minari":
-            meta = self.datasets.metadata
-            res = evaluate_returns(self.minari_env, self.actor, episodes=episodes, seed=ec.seed,
-                                   max_steps=meta.get("max_episode_steps") or 1000)
-            out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
-            for key in ("behaviour_mean_return", "expert_mean_return"):  # the datasets' own, beside it
-                if meta.get(key) is not None:
-                    out[f"data_{key}"] = float(meta[key])
-        else:
-            if episodes not in self.mc_envs:
-                self.mc_envs[episodes] = make_mountain_car_env(batch_size=[episodes])
-            res = evaluate_returns(self.mc_envs[episodes], self.actor, episodes=episodes, seed=ec.seed)
-            out["return"], out["return_ci"], out["return_stderr"] = res.mean, res.half_width, res.stderr
+        out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
+                                      device=self.device)
         if self.algo.bellman_loss is not None:
             held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
             _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))

@@ -1,0 +1,131 @@
+"""What the trainer, the algos and the recipes need to know about an environment, in one object per env kind."""
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+from torchrl.data import Bounded
+
+from torchrl_wbrm.data.datasets import OfflineDatasets
+
+from torchrl_wbrm.modules import ActionGrid
+
+__all__ = ["Evaluator", "Task", "to_dataclass"]
+
+
+def to_dataclass(cls, value):
+    """``value`` as a ``cls``: the dataclass itself, or an OmegaConf/dict node of its fields."""
+    if isinstance(value, cls):
+        return value
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(value, DictConfig):
+        value = OmegaConf.to_container(value, resolve=True)
+    return cls(**value)
+
+
+class Evaluator:
+    """Scores a policy (and Q̂) on fresh episodes of one env.
+
+    Attributes:
+        eval_samples: name -> TensorDict of ``"observation"``, ``"action"`` where Q̂ is scored against the exact Q*
+            (empty where Q* is unknown).
+        true_ratio: the exact density ratio dP^e/dP^b as a TensorDictModule writing ``"density_ratio"``, or ``None``.
+    """
+
+    eval_samples: dict
+    true_ratio: Any = None
+
+    def __init__(self) -> None:
+        self.eval_samples = {}
+
+    def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
+        """Flat dict of floats: ``return`` (with ``_ci``, ``_stderr``) and whatever else the env can score."""
+        raise NotImplementedError
+
+
+class Task:
+    """One environment kind (``env.kind``): its data, its action box, γ, its evaluator and its ground truth.
+
+    A task is made from the env config (:func:`~torchrl_wbrm.data.tasks.get_task`) before any data exist (to check
+    the config and build the data); :meth:`attach` then gives it the datasets, which the action box, the action grid
+    and the evaluator may read.
+    """
+
+    kind: ClassVar[str] = ""
+    #: the exact density ratio dP^e/dP^b is known (``ratio.source=exact``)
+    has_exact_ratio: ClassVar[bool] = False
+    #: ``recipes/make_dataset.py`` can collect this env's data (``False``: its data are read, not collected)
+    collects_data: ClassVar[bool] = True
+    #: γ when ``q.gamma`` is null
+    default_gamma: float = 0.99
+
+    def __init__(self, env) -> None:
+        """``env``: the env config (:class:`~torchrl_wbrm.data.EnvConfig`, or an OmegaConf node of one)."""
+        self.env = env
+        self.datasets: OfflineDatasets | None = None
+
+    # ------------------------------------------------------------------ before any data
+    def validate(self) -> None:
+        """Check the env's data settings before any data are collected; ``ValueError`` naming the key."""
+
+    def make_datasets(self, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
+        """Collect (or read) the three sets ``D``, ``S^b``, ``S^e``."""
+        raise NotImplementedError
+
+    def expected_sizes(self) -> dict[str, int] | None:
+        """The set sizes the config asks for (``{"behaviour": |D| + |S^b|, "expert_samples": |S^e|}``), which a data
+        cache entry must hold; ``None``: the data are on disk already and are not cached."""
+        return None
+
+    # ------------------------------------------------------------------ with the data
+    def attach(self, datasets: OfflineDatasets) -> "Task":
+        self.datasets = datasets
+        return self
+
+    def _action_dim(self) -> int:
+        return self.datasets.transitions[:]["action"].shape[-1]
+
+    def action_spec(self) -> Bounded:
+        """The action box the actors are bounded to."""
+        raise NotImplementedError
+
+    def gamma(self, override: float | None = None) -> float:
+        """``override`` (``q.gamma``) or the env's own discount."""
+        return override or self.default_gamma
+
+    def action_grid(self, num_bins: int) -> ActionGrid:
+        """The env's discretised action box (``algo=dqn``)."""
+        raise NotImplementedError
+
+    def evaluator(self, eval_cfg) -> Evaluator:
+        """The evaluator (``eval_cfg``: :class:`~torchrl_wbrm.training.config.EvalConfig`'s fields)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ recipes/make_dataset.py format=minari
+    #: the data module whose ``collect_transitions`` builds this env's sets (their collections are recorded)
+    data_module: ClassVar[Any] = None
+
+    def recorded_collections(self, *, seed: int, storage: str = "lazy"):
+        """The datasets and the collections they are made from: ``(datasets, behaviour, expert)``, where
+        ``behaviour`` and ``expert`` hold whole episodes (the behaviour part(s) are collected first, the expert last)."""
+        module, calls = self.data_module, []
+        original = module.collect_transitions
+
+        def recording(*args, **kwargs):
+            out = original(*args, **kwargs)
+            calls.append(out)
+            return out
+
+        module.collect_transitions = recording
+        try:
+            datasets = self.make_datasets(seed=seed, storage=storage)
+        finally:
+            module.collect_transitions = original
+        if len(calls) < 2:
+            raise RuntimeError(f"Expected a behaviour and an expert collection, recorded {len(calls)}.")
+        return datasets, torch.cat(calls[:-1], 0), calls[-1]
+
+    def minari_env_kwargs(self, behaviour) -> dict:
+        """What :func:`~torchrl_wbrm.data.write_minari_dataset` records of the env: a gymnasium id, or the spaces."""
+        raise NotImplementedError

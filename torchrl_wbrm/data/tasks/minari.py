@@ -1,0 +1,58 @@
+"""Two local Minari datasets (expert and behaviour), evaluated on their own gymnasium env."""
+from __future__ import annotations
+
+import torch
+from torchrl.data import Bounded
+
+from torchrl_wbrm.data.datasets import OfflineDatasets
+from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, make_minari_eval_env
+from torchrl_wbrm.data.tasks.base import Evaluator, Task, to_dataclass
+from torchrl_wbrm.evaluation import evaluate_returns
+from torchrl_wbrm.modules import ActionGrid
+
+__all__ = ["MinariEvaluator", "MinariTask"]
+
+
+class MinariTask(Task):
+    """``env.kind=minari``: the datasets of ``env.minari`` (read from disk, never downloaded, not cached again); the
+    action box is the datasets' (a ``Discrete`` action: its one-hot [0, 1]^n); γ 0.99 unless ``q.gamma``."""
+
+    kind = "minari"
+    collects_data = False
+
+    def __init__(self, env) -> None:
+        super().__init__(env)
+        self.data_config: MinariDataConfig = to_dataclass(MinariDataConfig, env.minari)
+
+    def make_datasets(self, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
+        return make_minari_datasets(self.data_config, seed=seed, storage=storage, scratch_dir=scratch_dir)
+
+    def action_spec(self) -> Bounded:
+        meta = self.datasets.metadata
+        return Bounded(torch.tensor(meta["action_low"]), torch.tensor(meta["action_high"]), (self._action_dim(),))
+
+    def action_grid(self, num_bins: int) -> ActionGrid:
+        return ActionGrid.from_env(make_minari_eval_env(self.datasets.metadata), num_bins)
+
+    def evaluator(self, eval_cfg) -> "MinariEvaluator":
+        return MinariEvaluator(self.datasets.metadata)
+
+
+class MinariEvaluator(Evaluator):
+    """The mean undiscounted return over episodes of the datasets' gymnasium env, one by one, beside the datasets'
+    own mean episode returns. The env is built now, so a missing one fails before training."""
+
+    def __init__(self, metadata: dict) -> None:
+        super().__init__()
+        self.metadata = metadata
+        self.env = make_minari_eval_env(metadata)
+
+    def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
+        meta = self.metadata
+        res = evaluate_returns(self.env, policy, episodes=episodes, seed=seed,
+                               max_steps=meta.get("max_episode_steps") or 1000)
+        out = {"return": res.mean, "return_ci": res.half_width, "return_stderr": res.stderr}
+        for key in ("behaviour_mean_return", "expert_mean_return"):  # the datasets' own, beside it
+            if meta.get(key) is not None:
+                out[f"data_{key}"] = float(meta[key])
+        return out
