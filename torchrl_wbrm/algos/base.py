@@ -215,8 +215,6 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
     return step
 
 
-
-
 def bellman_residual_algo(ctx: AlgoContext, *, weighted: bool) -> Algo:
     """The Bellman-residual family of the paper (``wbrm``, ``brm``): Q by the (weighted) residual, an actor as the
     maximiser, targets by ``SoftUpdate`` or residual gradient (``q.bootstrap``). A ``Discrete`` action (Minari
