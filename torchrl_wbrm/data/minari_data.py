@@ -50,6 +50,7 @@ __all__ = [
     "MinariDataConfig",
     "make_minari_datasets",
     "make_minari_eval_env",
+    "OneHotActions",
     "minari_data_root",
     "resolve_minari_dataset",
     "read_minari_transitions",
@@ -331,6 +332,27 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+class OneHotActions(torch.nn.Module):
+    """The ``n`` actions of a ``Discrete(n)`` space as ``algo=dqn``'s action grid (the interface of
+    :class:`~torchrl_wbrm.modules.ActionGrid`): ``index(one_hot) -> argmax``, ``forward(index) -> one-hot``.
+    ``num_bins`` does not apply: the actions are already discrete."""
+
+    def __init__(self, num_actions: int) -> None:
+        super().__init__()
+        self.register_buffer("values", torch.eye(int(num_actions)))
+
+    @property
+    def num_actions(self) -> int:
+        return int(self.values.shape[0])
+
+    def index(self, action: torch.Tensor) -> torch.Tensor:
+        return action.argmax(-1)
+
+    def forward(self, index: torch.Tensor) -> torch.Tensor:
+        index = index.reshape(index.shape[:-1] if index.ndim and index.shape[-1] == 1 else index.shape)
+        return self.values[index]
 
 
 @contextlib.contextmanager
