@@ -5,7 +5,12 @@ import torch
 from torchrl.data import Bounded
 
 from torchrl_wbrm.data.datasets import OfflineDatasets
-from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, make_minari_eval_env
+from torchrl_wbrm.data.minari_data import (
+    MinariDataConfig,
+    OneHotActions,
+    make_minari_datasets,
+    make_minari_eval_env,
+)
 from torchrl_wbrm.data.tasks.base import Evaluator, Task, to_dataclass
 from torchrl_wbrm.evaluation import evaluate_returns
 from torchrl_wbrm.modules import ActionGrid
@@ -32,6 +37,8 @@ class MinariTask(Task):
         return Bounded(torch.tensor(meta["action_low"]), torch.tensor(meta["action_high"]), (self._action_dim(),))
 
     def action_grid(self, num_bins: int) -> ActionGrid:
+        if self.datasets.metadata.get("discrete_actions"):  # a Discrete(n) action: its n actions, not a grid
+            return OneHotActions(self.datasets.metadata["discrete_actions"])
         return ActionGrid.from_env(make_minari_eval_env(self.datasets.metadata), num_bins)
 
     def evaluator(self, eval_cfg) -> "MinariEvaluator":
