@@ -222,8 +222,8 @@ def _tiny_trainer_config(minari: MinariDataConfig) -> dict:
 
 def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread):
     """A uint8 (3, 4) observation and a Discrete(2) action: read as 12 float32 numbers and one-hot actions; the
-    recipe's trainer runs on them (a Q head over the two actions, no actor) and evaluates on the env, which casts
-    and flattens its observation alike."""
+    recipe's trainer runs on them (wbrm: a Q head over the two actions, no actor; dqn: the two actions as its grid)
+    and evaluates on the env, which casts and flattens its observation alike."""
     from torchrl_wbrm.training import WBRMTrainer
 
     gym.register(IMAGE_ENV, entry_point=f"{__name__}:TinyImageEnv")
@@ -241,10 +241,13 @@ def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread)
         assert env.observation_spec["observation"].dtype == torch.float32
         trainer = WBRMTrainer(_tiny_trainer_config(minari), tmp_path / "run", progress=False)
         results = trainer.run()
+        # algo=dqn: its "grid" is the two actions themselves
+        dqn = WBRMTrainer({**_tiny_trainer_config(minari), "algo": "dqn"}, tmp_path / "dqn", progress=False).run()
     finally:
         gym.registry.pop(IMAGE_ENV, None)
     assert not trainer.algo.loss.has_actor  # greedy in Q over the two actions
-    assert results["status"] == "finished" and 0.0 <= results["final"]["return"] <= 8.0
+    for res in (results, dqn):
+        assert res["status"] == "finished" and 0.0 <= res["final"]["return"] <= 8.0
 
 
 @pytest.mark.slow
