@@ -19,8 +19,10 @@ Spaces: a ``Box`` observation of any shape and a one-dimensional ``Box`` or a ``
 of shape ``(d1, d2, ...)`` (a grid, an image) is read flattened (row-major, ``d1 d2 ...`` float32 numbers), and
 the evaluation env flattens and casts its observation the same way (torchrl's ``FlattenObservation`` and
 ``DTypeCastTransform``), so the networks see one vector in training and in evaluation. A ``Discrete(n)`` action is
-stored one-hot (``n`` floats), so the ratio network, Q and the actor see a vector as for a box; the evaluation env
-maps the actor's output back to ``argmax`` (:func:`make_minari_eval_env`).
+stored one-hot (``n`` floats), so the ratio network sees a vector as for a box; ``metadata["discrete_actions"] = n``
+makes ``wbrm`` / ``brm`` fit a Q head over the ``n`` actions (``algos.base.discrete_bellman_residual_algo``) and
+gives ``dqn`` the ``n`` actions as its grid (:class:`OneHotActions`); the evaluation env steps gym with the
+``argmax`` of the policy's output (:func:`make_minari_eval_env`).
 
 Reading uses Minari's own reader (``MinariDataset.iterate_episodes``). torchrl's ``MinariExperienceReplay`` does the
 same conversion, but it reads only ids under ``MINARI_DATASETS_PATH`` and writes a second, memory-mapped copy of
