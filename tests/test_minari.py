@@ -241,6 +241,11 @@ def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread)
         assert env.observation_spec["observation"].dtype == torch.float32
         trainer = WBRMTrainer(_tiny_trainer_config(minari), tmp_path / "run", progress=False)
         results = trainer.run()
+        # the actor's settings are refused: a Discrete action has no actor
+        cloning = _tiny_trainer_config(minari)
+        cloning["q"] = {**cloning["q"], "bc_alpha": 2.5}
+        with pytest.raises(ValueError, match=r"q.bc_alpha=2.5 configures the actor, but a Discrete\(2\) action"):
+            WBRMTrainer(cloning, tmp_path / "cloning", progress=False).run()
         # algo=dqn: its "grid" is the two actions themselves
         dqn = WBRMTrainer({**_tiny_trainer_config(minari), "algo": "dqn"}, tmp_path / "dqn", progress=False).run()
     finally:
