@@ -7,36 +7,48 @@ from dataclasses import dataclass
 from tensordict import TensorDictBase
 from torchrl.objectives import CQLLoss, SoftUpdate
 
-from torchrl_wbrm.algos.base import (Algo, AlgoContext, actor_options, adam, check_positive, critic_actor_optimisers,
-                                    descend_all, q_network, q_reader, scalars)
+from torchrl_wbrm.algos.base import (Algo, AlgoContext, actor_options, adam, check_positive, descend_all, q_network,
+                                    q_reader, scalars)
 from torchrl_wbrm.algos.registry import register_algo
 from torchrl_wbrm.modules import make_tanh_normal_actor
+from torchrl_wbrm.modules.action_scaling import ActionScaling
 
 
 @dataclass
 class CQLConfig:
-    """CQL(H) for continuous actions with torchrl's ``CQLLoss`` and a TanhNormal actor (``baselines.cql``).
+    """CQL(H) for continuous actions with torchrl's ``CQLLoss`` and a TanhNormal actor (``baselines.cql``), in unit
+    actions (:class:`~torchrl_wbrm.modules.action_scaling.ActionScaling`) so the uniform actions cover the env's box.
 
     Attributes:
-        min_q_weight: the conservative penalty's weight (the paper's α).
+        min_q_weight: the conservative penalty's weight (d3rlpy's ``conservative_weight`` 5, the paper's α).
         temperature: its log-sum-exp temperature.
-        num_random: uniform actions per state.
-        with_lagrange, lagrange_thresh: the Lagrangian variant.
+        num_random: uniform actions per state (and policy actions per state and next state).
+        with_lagrange, lagrange_thresh: the Lagrangian variant (the paper's CQL with a learned α', d3rlpy's
+            default): α' ≥ 0 scales the penalty and is raised while the weighted gap ``min_q_weight·(log Σ exp Q −
+            Q(data))`` exceeds ``lagrange_thresh`` (d3rlpy's ``alpha_threshold`` 10).
         alpha_init: the initial entropy coefficient (tuned as in SAC).
         loss_function: the critics' loss.
+        lr, actor_lr, alpha_lr, alpha_prime_lr, target_tau: Adam's rates for the critics, the actor, the entropy
+            coefficient and α', and SoftUpdate's τ (the paper's and d3rlpy's 3e-4, 1e-4, 1e-4, 1e-4 and 0.005; they
+            replace ``q.lr``, ``q.actor_lr`` and ``q.target_tau`` for this algo).
     """
 
-    min_q_weight: float = 1.0
+    min_q_weight: float = 5.0
     temperature: float = 1.0
     num_random: int = 10
-    with_lagrange: bool = False
-    lagrange_thresh: float = 5.0
+    with_lagrange: bool = True
+    lagrange_thresh: float = 10.0
     alpha_init: float = 1.0
     loss_function: str = "l2"
+    lr: float = 3e-4
+    actor_lr: float = 1e-4
+    alpha_lr: float = 1e-4
+    alpha_prime_lr: float = 1e-4
+    target_tau: float = 0.005
 
 
 def _check(settings: CQLConfig, key: str) -> None:
-    check_positive(settings, key, "num_random")
+    check_positive(settings, key, "num_random", "lr", "actor_lr", "alpha_lr", "alpha_prime_lr", "target_tau")
 
 
 @register_algo("cql", config=CQLConfig, validate=_check, loss="torchrl `CQLLoss`, TanhNormal actor",
@@ -44,29 +56,50 @@ def _check(settings: CQLConfig, key: str) -> None:
 def build_cql(ctx: AlgoContext) -> Algo:
     """torchrl's ``CQLLoss`` on D: SAC's losses plus the conservative penalty log Σ exp Q − Q(data), two Q
     networks, a TanhNormal actor (evaluated by its mode), entropy coefficient tuned. All losses are summed and stepped
-    at once, as torchrl's ``cql_offline`` does. Note: TorchRL draws CQL's uniform actions in [−1, 1]ᵐ, not in the
-    action spec's box, so with LQR's box [−5, 5]² they cover its centre only.
+    at once, as torchrl's ``cql_offline`` does.
+
+    Actions are unit actions: TorchRL draws CQL's uniform actions in [−1, 1]ᵐ with density 0.5ᵐ, so D's actions are
+    rescaled once into ``[−1, 1]ᵐ``, the actor is a TanhNormal on ``[−1, 1]ᵐ`` and the evaluated policy maps its mode
+    back to the env's box (without this, on LQR's box [−5, 5]² the uniform actions covered its centre only).
+
+    With ``with_lagrange`` the critics' penalty is ``α'·(gap − lagrange_thresh)`` with α' = exp(log α') held fixed
+    in the critics' step, and α' is stepped on ``−α'·(gap − lagrange_thresh)`` with the gap held fixed (Kumar et
+    al.'s and d3rlpy's update). TorchRL's ``loss_alpha_prime`` is not used: summed with the other losses it would
+    send −α'·∇gap into the critics, cancelling the penalty as α' grows.
     """
-    qc, cc = ctx.cfg.q, ctx.cfg.baselines.cql
-    actor = make_tanh_normal_actor(ctx.observation_dim, ctx.action_spec, **actor_options(ctx)).to(ctx.device)
+    cc = ctx.cfg.baselines.cql
+    scaling = ActionScaling(ctx.action_spec)
+    actor = make_tanh_normal_actor(ctx.observation_dim, scaling.unit_spec, **actor_options(ctx)).to(ctx.device)
     loss = CQLLoss(
-        actor, q_network(ctx), action_spec=ctx.action_spec, loss_function=cc.loss_function,
+        actor, q_network(ctx), action_spec=scaling.unit_spec, loss_function=cc.loss_function,
         alpha_init=cc.alpha_init, temperature=cc.temperature, min_q_weight=cc.min_q_weight,
         num_random=cc.num_random, with_lagrange=cc.with_lagrange, lagrange_thresh=cc.lagrange_thresh,
     )
     loss.make_value_estimator(gamma=ctx.gamma)
-    updater = SoftUpdate(loss, tau=qc.target_tau)
-    optimisers = {**critic_actor_optimisers(loss, ctx.cfg, critic="qvalue"), "alpha": adam([loss.log_alpha], qc.actor_lr)}
+    updater = SoftUpdate(loss, tau=cc.target_tau)
+    optimisers = {"qvalue": adam(loss.qvalue_network_params.values(True, True), cc.lr),
+                  "actor": adam(loss.actor_network_params.values(True, True), cc.actor_lr),
+                  "alpha": adam([loss.log_alpha], cc.alpha_lr)}
     if cc.with_lagrange:
-        optimisers["alpha_prime"] = adam([loss.log_alpha_prime], qc.lr)
+        optimisers["alpha_prime"] = adam([loss.log_alpha_prime], cc.alpha_prime_lr)
 
     def step(batch: TensorDictBase, i: int) -> dict:
         out = loss(batch)
-        losses = {k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_cql", "loss_alpha", "loss_alpha_prime")
-                  if k in out.keys()}
+        losses = {k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}
+        gap = out["loss_cql"]  # the two critics' min_q_weight·(log Σ exp Q − Q(data)), summed, batch mean
+        figures = scalars(out)
+        if cc.with_lagrange:
+            alpha_prime = loss.log_alpha_prime.exp().clamp(0.0, 1e6)
+            excess = gap - 2 * cc.lagrange_thresh  # per critic: gap_k − thresh
+            losses["loss_cql"] = alpha_prime.detach() * excess
+            losses["loss_alpha_prime"] = -0.5 * alpha_prime * excess.detach()
+            figures.update(loss_alpha_prime=losses["loss_alpha_prime"].detach(), alpha_prime=alpha_prime.detach())
+        else:
+            losses["loss_cql"] = gap
         descend_all(losses, optimisers)
         updater.step()
-        return scalars(out)
+        return figures
 
-    return Algo(loss=loss, optimisers=optimisers, step=step, policy=actor,
-                q_value=q_reader(loss.qvalue_network, loss.qvalue_network_params[0]))
+    return Algo(loss=loss, optimisers=optimisers, step=step, policy=scaling.policy(actor),
+                q_value=scaling.q_reader(q_reader(loss.qvalue_network, loss.qvalue_network_params[0])),
+                map_data=scaling.scale_data)
