@@ -84,6 +84,25 @@ def test_weighted_bellman_fast_path_equals_the_tensordict_path(kwargs):
             assert torch.equal(g_f[key], g_s[key]), key
 
 
+def test_value_loss_input_checks_in_one_reduction_raise_what_the_separate_checks_raise():
+    from torchrl_wbrm.objectives._utils import NonFiniteError
+
+    fast, _ = _pair()
+    data = _data()
+    data["density_ratio"][0] = -1.0
+    data["observation"][3] = float("nan")
+    with pytest.raises(ValueError, match=r"Entry 'density_ratio' must be finite and non-negative"):  # ŵ first, as before
+        fast.value_loss(data)
+    data = _data()
+    data["next", "observation"][5, 1] = float("inf")
+    with pytest.raises(NonFiniteError, match=r"Entry \('next', 'observation'\) holds 1 non-finite"):
+        fast.value_loss(data)
+    data = _data()
+    data["next", "reward"].fill_(3e38)  # finite entries whose sum overflows: accepted
+    loss, _ = fast.value_loss(data)
+    assert loss.shape == ()
+
+
 def test_actor_loss_fast_path_leaves_q_without_gradient():
     fast, _ = _pair()
     loss_actor, _ = fast.actor_loss(_data())

@@ -155,6 +155,7 @@ class ForeachSoftUpdate(SoftUpdate):
             target = dst_store[name]
             if target.requires_grad:
                 raise RuntimeError("the target parameter is part of a graph.")
-            sources.append(src_store[name].data)
-            targets.append(target.data)
-        torch._foreach_lerp_(targets, sources, 1 - self.eps)
+            sources.append(src_store[name])
+            targets.append(target)
+        with torch.no_grad():  # (the tensors themselves rather than 24 ``.data`` views: the same kernel on the same memory)
+            torch._foreach_lerp_(targets, sources, 1 - self.eps)

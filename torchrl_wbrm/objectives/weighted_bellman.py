@@ -1,6 +1,7 @@
 """Stage 2 of WBRM: the weighted Bellman residual loss, Section 3 of the paper."""
 from __future__ import annotations
 
+import math
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -89,6 +90,26 @@ def weighted_bellman_residual(
         weighted = reduce_batch(weight * td_error, reduction)
         return weighted if reduction == "none" else weighted.abs()
     raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
+
+
+def _finite_and_non_negative(values: list[torch.Tensor], weight: torch.Tensor | None) -> bool:
+    """Whether the floating CPU tensors of ``values`` and ``weight`` sum to a finite number and ``weight``'s minimum is
+    finite and ``>= 0``, by one concatenated sum, one minimum and one host read (True where nothing is on the CPU:
+    checks there would need a host sync; see :func:`check_sign`)."""
+    values = [v for v in values if v.device.type == "cpu" and v.is_floating_point()]
+    with_weight = weight is not None and weight.device.type == "cpu"
+    if with_weight:
+        values.append(weight)
+    if not values:
+        return True
+    with torch.no_grad():
+        if any(v.dtype != values[0].dtype for v in values):
+            values = [v.to(torch.float64) for v in values]
+        total = torch.cat([v.reshape(-1) for v in values]).sum()
+        if not with_weight:
+            return math.isfinite(total.item())
+        total, low = torch.stack([total, values[-1].amin()]).tolist()
+    return math.isfinite(total) and low >= 0  # (a NaN minimum fails the comparison)
 
 
 class WeightedBellmanLoss(LossModule):
@@ -450,9 +471,11 @@ class WeightedBellmanLoss(LossModule):
             device=tensordict.device,
         )
 
-    def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
+    def _weight(self, tensordict: TensorDictBase, check: bool = True) -> torch.Tensor:
         """The per-sample weight, shape ``[*B]`` (detached: the weights are fixed in stage 2): ŵ (``use_weights``)
-        times the ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies."""
+        times the ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies.
+
+        ``check=False`` leaves ŵ's sign check to the caller (:meth:`bellman_error` with ``weight_to_check``)."""
         weight = None
         if self.use_weights:
             key = self.tensor_keys.weight
@@ -461,7 +484,8 @@ class WeightedBellmanLoss(LossModule):
                 "the loss with use_weights=False"
             )
             weight = per_sample(weight, tensordict.batch_size, key).detach()
-            check_sign(weight, key, strictly_positive=False)
+            if check:
+                check_sign(weight, key, strictly_positive=False)
         priority_key = self.tensor_keys.priority_weight
         if self.use_prioritized_weights in (True, "auto") and not (self.use_weights and priority_key == self.tensor_keys.weight):
             priority = tensordict.get(priority_key, None)
@@ -552,7 +576,10 @@ class WeightedBellmanLoss(LossModule):
             else:
                 if actor_action is None:
                     raise ValueError("ActorMaximiser needs actor_action = μ(x); build the loss with an actor_network.")
-                candidates = actor_action.unsqueeze(0)
+                # one candidate: Q(x', μ'(x')) itself (the [1, *B] evaluation and its max over one are the same
+                # matrix products on the same rows, and the max of one value is that value)
+                tensors = [actor_action if key == action_key else next_inputs[key] for key in self.value_network.in_keys]
+                return value_call(params, *tensors).squeeze(-1)
             k = candidates.shape[0]
             tensors = []
             for key in self.value_network.in_keys:
@@ -564,22 +591,28 @@ class WeightedBellmanLoss(LossModule):
             return values.max(0).values
 
     # ---------------------------------------------------------------- input checks
-    def _checked_inputs(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _checked_inputs(self, tensordict: TensorDictBase, weight_to_check: torch.Tensor | None = None) -> TensorDictBase:
         """Check a batch against the documented shapes before any network sees it; return it with bool flags.
 
         A ValueError names the key and both shapes for a reward or flag that is not one value per sample, or an
         observation whose next-state counterpart has another shape; an empty batch and NaN/inf in the reward,
         observations or action (CPU tensors) are ValueErrors too. ``done``/``terminated`` of any integer dtype
         holding 0/1 are read as bools (a shallow copy; the input is not modified); a float flag is a TypeError.
+        ``weight_to_check`` (ŵ, ``[*B]``) is checked finite and non-negative first (:func:`check_sign`'s error).
+
+        The finite checks (and ŵ's sign) are one sum over all the entries and one minimum, read in one host sync: a
+        sum is finite iff every entry is, unless it overflows, and only then (or on a failure) is each entry checked
+        on its own, in the order above, for the error that names it.
         """
         batch = tensordict.batch_size
         check_not_empty(batch, "Bellman-residual")
         flags = {}
+        checks: list[tuple[torch.Tensor, NestedKey]] = []
         for key, why in ((self.tensor_keys.reward, "the reward"), (self.tensor_keys.done, "episode-end flag"),
                          (self.tensor_keys.terminated, "episode-end flag; no bootstrap where it is True")):
             value = per_sample(get_entry(tensordict, _next(key), why), batch, _next(key))
             if key == self.tensor_keys.reward:
-                check_finite(value, _next(key))
+                checks.append((value, _next(key)))
             else:
                 flag = as_bool_flag(tensordict.get(_next(key)), _next(key))
                 if flag.dtype is not tensordict.get(_next(key)).dtype:
@@ -589,11 +622,15 @@ class WeightedBellmanLoss(LossModule):
             obs = get_entry(tensordict, key, "an input of the value network")
             next_obs = get_entry(next_td, key, "a next-state input of the value network")
             check_same_features(obs, next_obs, key, _next(key), batch, batch)
-            check_finite(obs, key)
-            check_finite(next_obs, _next(key))
+            checks += [(obs, key), (next_obs, _next(key))]
         if not self.discrete:
-            check_finite(get_entry(tensordict, self.tensor_keys.action, "the action taken in the data"),
-                         self.tensor_keys.action)
+            checks.append((get_entry(tensordict, self.tensor_keys.action, "the action taken in the data"),
+                           self.tensor_keys.action))
+        if not _finite_and_non_negative([v for v, _ in checks], weight_to_check):
+            if weight_to_check is not None:
+                check_sign(weight_to_check, self.tensor_keys.weight, strictly_positive=False)
+            for value, key in checks:
+                check_finite(value, key)
         if flags:  # a shallow copy with bool flags, so the caller's TensorDict is not modified
             tensordict = tensordict.copy()
             next_td = next_td.copy()
@@ -603,13 +640,15 @@ class WeightedBellmanLoss(LossModule):
         return tensordict
 
     # ---------------------------------------------------------------- losses
-    def bellman_error(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    def bellman_error(self, tensordict: TensorDictBase, weight_to_check: torch.Tensor | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(Q(x_i, a_i), Y_i)``, each of shape ``[*B]``, with ``Y_i = r_i + γ (1 − terminated_i) max Q(x'_i, ·)``.
 
         ``Y`` carries a gradient exactly when the bootstrap is by residual gradient (``delay_value=False``).
         Shared by :meth:`value_loss` and by subclasses (:class:`~torchrl_wbrm.objectives.MABOLoss`).
+        ``weight_to_check``: ŵ, checked with the batch's entries (see :meth:`_checked_inputs`).
         """
-        tensordict = self._checked_inputs(tensordict)
+        tensordict = self._checked_inputs(tensordict, weight_to_check)
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
         target_value = self._td0_target(tensordict, next_value)
@@ -620,8 +659,8 @@ class WeightedBellmanLoss(LossModule):
 
         The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
         """
-        weight = self._weight(tensordict)
-        q_value, target_value = self.bellman_error(tensordict)
+        weight = self._weight(tensordict, check=False)
+        q_value, target_value = self.bellman_error(tensordict, weight if self.use_weights else None)
         loss = weighted_bellman_residual(
             q_value,
             target_value,
