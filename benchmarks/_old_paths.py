@@ -27,14 +27,29 @@ def old_paths(*, shortcuts: bool = False, fused: bool = False):
     from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
     from torchrl_wbrm.training import algos, trainer as trainer_module
 
+    # the algorithms' builders: training.algos, or (issue 13's layout) torchrl_wbrm.algos.base, which
+    # training.algos re-exports; each name is patched where the builders look it up
+    builders = [algos]
+    try:
+        from torchrl_wbrm.algos import base as algos_base
+    except ImportError:
+        algos_base = None
+    if algos_base is not None:
+        builders.append(algos_base)
+
+    def patch_all(name, value):
+        for module in builders:
+            if hasattr(module, name):
+                stack.enter_context(mock.patch.object(module, name, value))
+
     with ExitStack() as stack:
         if not fused:
-            stack.enter_context(mock.patch.object(algos, "adam_options", lambda params: {}))
+            patch_all("adam_options", lambda params: {})
             stack.enter_context(mock.patch.object(trainer_module, "adam_options", lambda params: {}))
         if not shortcuts:
             stack.enter_context(mock.patch.object(WeightedBellmanLoss, "fast_path", False))
             stack.enter_context(mock.patch.object(RobustDensityRatioLoss, "fast_path", False))
-            stack.enter_context(mock.patch.object(algos, "ForeachSoftUpdate", SoftUpdate))
+            patch_all("ForeachSoftUpdate", SoftUpdate)
             stack.enter_context(mock.patch.object(LQREnv, "rollout", EnvBase.rollout))
             stack.enter_context(mock.patch.object(
                 trainer_module, "PairedBatches", lambda b, e, n, device=None: _Plain(PairedSampler(b, e, n), device)))
