@@ -225,3 +225,12 @@ def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path):
         assert results["seed"] == seed and results["algo"] == "brm" and results["config"]["q"]["steps"] == 4
         assert results["study"] == {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "brm"}
     run_cells([cell], [0, 1], budget, tmp_path, launcher="no_such_launcher")  # all done: nothing is launched
+
+
+def test_the_names_scripts_imported_before_still_import():
+    from torchrl_wbrm.training import algos as old
+    from torchrl_wbrm.training.config import MABOConfig, TD3BCConfig
+
+    assert TD3BCConfig is get_algo("td3bc").config and MABOConfig is get_algo("mabo").config
+    assert old.ALGOS is ALGOS and old.build_algo is build_algo and old.build_td3bc is get_algo("td3bc").build
+    assert {"Algo", "AlgoContext", "ActionGrid", "adam_options", "make_tanh_normal_actor"} <= set(old.__all__)
