@@ -15,8 +15,10 @@ run: the cosine schedule anneals over the budget), a two-network ensemble (mean 
 reward/target scaling (Q = s · MLP), and the weight shaping of ŵ (temper / mix, unweighted beside them).
 
 Selection uses no ground truth: within each block, the level with the lowest held-out Bellman residual (unweighted
-mean δ² on behaviour episodes held out of D), as a geometric mean over systems of its ratio to the default's. The
-weighting block selects among learned-ratio shapings only (the unweighted residual favours w ≡ 1 by construction).
+mean δ² on behaviour episodes held out of D), as a geometric mean over systems of its ratio to the default's on the
+same seeds. It replaces the default only when it is lower beyond the noise: the 95% interval of the paired
+log-ratios (one per system and seed) lies below 0. The weighting block selects among learned-ratio shapings only
+(the unweighted residual favours w ≡ 1 by construction).
 The exact optimum only scores: paired regret and Q̂ error relative to Q*'s spread on expert samples.
 
 Outputs in ``--out``: one run directory per cell and seed, ``tables.md`` (mean ± 95% CI over seeds) and
@@ -76,6 +78,11 @@ BLOCKS: dict[str, dict[str, list[str]]] = {
     "batch size": {
         "256 (default)": [],
         "512": ["q.batch_size=512"],
+    },
+    "combined": {  # every level the residual preferred in its own block (each within the noise), together
+        "one factor at a time (default)": [],
+        "GELU + two-network min + 6000 steps + ŵ^0.5": [
+            "q.activation=GELU", "q.ensemble_size=2", "q.ensemble_reduction=min", "q.steps=6000", "ratio.temper=0.5"],
     },
     "target scaling": {
         "Q = MLP (default)": [],
@@ -165,11 +172,18 @@ def _block_records(records: list[dict], block: str) -> list[dict]:
                                        order.index(r["study"]["method"]) if r["study"]["method"] in order else 99))
 
 
-def select(records: list[dict], block: str) -> tuple[str, dict]:
-    """The level of ``block`` with the lowest held-out Bellman residual: per system its mean over its seeds divided
-    by the default's mean over the same seeds (paired), then the geometric mean over the systems where the level
-    ran. No ground truth is used."""
+def select(records: list[dict], block: str) -> tuple[str, dict, dict]:
+    """The level of ``block`` with the lowest held-out Bellman residual, and whether it is lower beyond the noise.
+
+    Per system, a level's mean residual over its seeds is divided by the default's mean over the same seeds
+    (paired); the score is the geometric mean over the systems where the level ran. The noise: the paired log-ratios
+    log(residual / default's residual), one per system and seed, give a mean with a 95% Student-t interval; a level
+    is *better beyond the noise* when the whole interval is below 0. Returns ``(best level, scores, intervals)``,
+    ``intervals[level] = (mean, half width)`` of the paired log-ratio. No ground truth is used.
+    """
     import numpy as np
+
+    from torchrl_wbrm.evaluation.stats import mean_ci
 
     residual: dict[str, dict[str, dict[int, float]]] = {}  # level -> env -> seed -> held-out residual
     for r in _block_records(records, block):
@@ -177,15 +191,32 @@ def select(records: list[dict], block: str) -> tuple[str, dict]:
             r["final"]["held_out_bellman_residual"])
     default_level = next(level for level in BLOCKS[block] if _is_default(level))
     base = residual.get(default_level, {})
-    scores = {}
+    scores, intervals = {}, {}
     for level, envs in residual.items():
         if block == "weighting" and not level.startswith("learned"):
             continue
+        paired = {env: by_seed for env, by_seed in envs.items()
+                  if env in base and all(seed in base[env] for seed in by_seed)}
+        if not paired:
+            continue
         ratios = [np.mean(list(by_seed.values())) / np.mean([base[env][seed] for seed in by_seed])
-                  for env, by_seed in envs.items() if env in base and all(seed in base[env] for seed in by_seed)]
-        if ratios:
-            scores[level] = float(np.exp(np.mean(np.log(ratios))))
-    return min(scores, key=scores.get), scores
+                  for env, by_seed in paired.items()]
+        scores[level] = float(np.exp(np.mean(np.log(ratios))))
+        logs = [float(np.log(v / base[env][seed])) for env, by_seed in paired.items() for seed, v in by_seed.items()]
+        if level != default_level and len(logs) > 1:
+            ci = mean_ci(logs)
+            intervals[level] = (ci.mean, ci.half_width)
+    return min(scores, key=scores.get), scores, intervals
+
+
+def selection_verdict(chosen: str, intervals: dict) -> str:
+    """The selection rule in words: a level replaces the default only when its paired interval lies below 0."""
+    if _is_default(chosen):
+        return f"{chosen}: keep"
+    mean, half = intervals.get(chosen, (float("nan"), float("nan")))
+    beyond = mean + half < 0
+    return f"{chosen}: {'adopt' if beyond else 'keep the default'} (log-ratio {mean:+.3f} ± {half:.3f}" + (
+        ")" if beyond else ", within the noise)")
 
 
 def tables(out: Path) -> str:
@@ -204,19 +235,19 @@ def tables(out: Path) -> str:
         parts.append("### The recipe's defaults (5 seeds)\n\n" + results_table(
             sorted(defaults, key=lambda r: SYSTEMS.index(r["study"]["env"])), ["=study.env"],
             {**metrics, "exact optimum": "final.optimal_return_exact", "return": "final.return"}))
-    selections = ["| block | selected by held-out residual | score of each level (geometric mean of residual / default's) |",
-                  "|---|---|---|"]
+    selections = ["| block | lowest held-out residual, and the rule's verdict | score of each level (geometric mean of "
+                  "residual / default's) |", "|---|---|---|"]
     for block in BLOCKS:
         rows = _block_records(records, block)
         if not any(r["study"]["block"] == block for r in records):
             continue
         parts.append(f"### {block}\n\n" + results_table(rows, ["=study.env", "=study.method"], metrics))
         try:
-            chosen, scores = select(records, block)
+            chosen, scores, intervals = select(records, block)
         except (KeyError, ValueError, StopIteration):
             continue
         scored = ", ".join(f"{k}: {v:.3f}" for k, v in sorted(scores.items(), key=lambda kv: kv[1]))
-        selections.append(f"| {block} | {chosen} | {scored} |")
+        selections.append(f"| {block} | {selection_verdict(chosen, intervals)} | {scored} |")
     parts.append("### Selection (no ground truth)\n\n" + "\n".join(selections))
     mc = [r for r in records if r["study"]["block"] == "mountain_car"]
     if mc:
