@@ -67,13 +67,13 @@ MUTATIONS = [
     Mutation(
         "flip_gamma", "the trainer discounts with −γ",
         "torchrl_wbrm/training/trainer.py",
-        [("self.gamma = self.cfg.q.gamma or self.lqr_config.gamma", "self.gamma = -(self.cfg.q.gamma or self.lqr_config.gamma)")],
+        [("self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = -self.task.gamma(self.cfg.q.gamma)")],
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(
         "gamma_half", "the trainer discounts with γ = 0.5 instead of the env's 0.9",
         "torchrl_wbrm/training/trainer.py",
-        [("self.gamma = self.cfg.q.gamma or self.lqr_config.gamma", "self.gamma = 0.5")],
+        [("self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = 0.5")],
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(
@@ -90,7 +90,7 @@ MUTATIONS = [
     ),
     Mutation(
         "skip_optimiser_step", "no optimiser step in the algos' shared descent step",
-        "torchrl_wbrm/training/algos.py",
+        "torchrl_wbrm/algos/base.py",
         [("    loss.backward()\n    if grad_clip:", "    loss.backward()\n    return\n    if grad_clip:")],
         [f"{LEARNING}[wbrm]", f"{LEARNING}[brm]"],
     ),
@@ -117,13 +117,13 @@ MUTATIONS = [
     ),
     Mutation(
         "frozen_target", "the Bellman family never updates its target (SoftUpdate skipped)",
-        "torchrl_wbrm/training/algos.py",
+        "torchrl_wbrm/algos/base.py",
         [("            if updater is not None and not every_step:", "            if False:")],
         [f"{LEARNING}[wbrm]", f"{Q_LEARNING}[wbrm]", f"{LEARNING}[brm]", f"{Q_LEARNING}[brm]"],
     ),
     Mutation(
         "no_actor_step", "the actor (the max over actions) is never trained",
-        "torchrl_wbrm/training/algos.py",
+        "torchrl_wbrm/algos/base.py",
         [("        if i % qc.actor_delay == 0 and loss.has_actor:", "        if False:")],
         [f"{LEARNING}[wbrm]", f"{LEARNING}[brm]"],
     ),
