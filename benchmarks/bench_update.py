@@ -175,6 +175,10 @@ def q_comparisons(cfg, device, iterations, rounds, compiled: bool):
     r3 = compare({"twin (randint indexing)": twin_sampled, f"BufferBatches.sample + algo.step{label}": ours_sampled},
                  yardstick="twin (randint indexing)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("full step with sampling from the replay buffer", r3, yardstick="twin (randint indexing)")
+    compiled_losses = getattr(algo.step, "compiled", None)
+    if compiled and compiled_losses is not None:
+        print(f"(compilation, the first value and actor steps included: {compiled_losses.compile_seconds:.1f} s; "
+              "not in the timings above, which start after warm-up)")
     return {"critic": r, "full": r2, "full_sampled": r3}
 
 

@@ -31,6 +31,7 @@ from torchrl_wbrm.objectives._utils import (
     check_reduction,
     check_same_features,
     check_sign,
+    fast_get,
     get_entry,
     per_sample,
     reduce_batch,
@@ -449,15 +450,15 @@ class WeightedBellmanLoss(LossModule):
             not self.fast_path
             or type(estimator) is not TD0Estimator
             or getattr(estimator, "average_rewards", True)
-            or tensordict.get(keys.steps_to_next_obs, None) is not None
+            or fast_get(tensordict, keys.steps_to_next_obs) is not None
         ):
             reward = tensordict.get(_next(self.tensor_keys.reward))
             return estimator.value_estimate(tensordict.copy(), next_value=next_value.reshape(reward.shape))
-        reward = tensordict.get(("next", keys.reward))
+        reward = fast_get(tensordict, _next(keys.reward))
         if estimator.gamma.device != reward.device:
             estimator.gamma = estimator.gamma.to(reward.device)
-        done = tensordict.get(("next", keys.done))
-        terminated = tensordict.get(("next", keys.terminated), default=done)
+        done = fast_get(tensordict, _next(keys.done))
+        terminated = fast_get(tensordict, _next(keys.terminated), done)
         return td0_return_estimate(
             gamma=estimator.gamma, next_state_value=next_value.reshape(reward.shape), reward=reward,
             terminated=terminated,
@@ -488,7 +489,7 @@ class WeightedBellmanLoss(LossModule):
                 check_sign(weight, key, strictly_positive=False)
         priority_key = self.tensor_keys.priority_weight
         if self.use_prioritized_weights in (True, "auto") and not (self.use_weights and priority_key == self.tensor_keys.weight):
-            priority = tensordict.get(priority_key, None)
+            priority = fast_get(tensordict, priority_key)
             if priority is not None:
                 priority = per_sample(priority, tensordict.batch_size, priority_key).detach()
                 check_sign(priority, priority_key, strictly_positive=False)
@@ -614,8 +615,9 @@ class WeightedBellmanLoss(LossModule):
             if key == self.tensor_keys.reward:
                 checks.append((value, _next(key)))
             else:
-                flag = as_bool_flag(tensordict.get(_next(key)), _next(key))
-                if flag.dtype is not tensordict.get(_next(key)).dtype:
+                raw = fast_get(tensordict, _next(key))
+                flag = as_bool_flag(raw, _next(key))
+                if flag.dtype is not raw.dtype:
                     flags[key] = flag
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
         for key in self._observation_keys:
