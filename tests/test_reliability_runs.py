@@ -159,6 +159,8 @@ def test_corrupted_checkpoint_names_the_file(finished, tmp_path, damage):
 
 
 def test_sigterm_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
+    # what was installed before the run (SIG_DFL, or a handler an earlier test's torchrl memmap storage left)
+    before = signal.getsignal(signal.SIGTERM)
     trainer = WBRMTrainer(tiny(), tmp_path, progress=False)
     step = trainer._q_step
 
@@ -171,7 +173,7 @@ def test_sigterm_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     with pytest.raises(RunInterrupted, match=rf"SIGTERM received: stopped in stage 'q' at step 15.*resume={tmp_path}") as err:
         trainer.run()
     assert err.value.exit_code == 128 + signal.SIGTERM
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is removed again
+    assert signal.getsignal(signal.SIGTERM) == before  # the run's handler is removed again, the previous one back
     assert not (tmp_path / "results.json").exists()
     resumed = WBRMTrainer(tiny(), tmp_path, progress=False, resume=True)
     assert resumed.state == {"stage": "q", "step": 15}
