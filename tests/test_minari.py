@@ -202,15 +202,63 @@ def test_multidimensional_observation_read_flat_and_evaluated_alike(cartpole_gri
         make_minari_eval_env({**meta, "eval_env": "CartPole-v1", "eval_env_spec": None})
 
 
-def test_multidimensional_box_action_refused(tmp_path):
-    episodes = [{"observations": np.zeros((3, 2), np.float32), "actions": np.zeros((2, 2, 2), np.float32),
-                 "rewards": np.zeros(2), "terminations": np.array([False, True]), "truncations": np.zeros(2, bool)}]
-    write_minari_dataset("grid/action-v0", episodes, data_path=tmp_path,
-                         observation_space=gym.spaces.Box(-1.0, 1.0, (2,), np.float32),
-                         action_space=gym.spaces.Box(-1.0, 1.0, (2, 2), np.float32))
-    with pytest.raises(ValueError, match=r"of shape \(2, 2\); a Box action must be one-dimensional"):
-        make_minari_datasets(MinariDataConfig(expert="grid/action-v0", behaviour="grid/action-v0",
-                                              data_path=str(tmp_path)))
+def test_multidimensional_box_action_read_flat_and_reshaped_for_the_env(tmp_path):
+    """Pendulum-v1 with its Box action reshaped to (1, 1): the data's actions are read flat, (N, 1); the evaluation
+    env takes the policy's flat action and steps gym with it reshaped back, so the swing-up heuristic scores there
+    what it scored in the data; an env whose action space is not the datasets' is refused, naming both."""
+    from torchrl_wbrm.data.minari_examples import collect_gym_episodes, pendulum_expert_action, register_reshaped_env
+
+    env_id = register_reshaped_env("Pendulum-v1", action_shape=(1, 1))
+    assert gym.make(env_id).action_space.shape == (1, 1)
+    episodes = collect_gym_episodes(env_id, lambda obs, rng: pendulum_expert_action(obs).reshape(1, 1), 6, seed=0)
+    for name in ("expert", "behaviour"):
+        write_minari_dataset(f"pendulum_a1x1/{name}-v0", episodes, data_path=tmp_path, env=env_id)
+    data = make_minari_datasets(MinariDataConfig(expert="pendulum_a1x1/expert-v0", behaviour="pendulum_a1x1/behaviour-v0",
+                                                 data_path=str(tmp_path)))
+    meta = data.metadata
+    assert meta["action_shape"] == [1, 1] and meta["action_low"] == [-2.0] and meta["action_high"] == [2.0]
+    expert = data.expert_samples[:]
+    assert expert["action"].shape == (expert.shape[0], 1)
+    np.testing.assert_allclose(expert["action"][:3, 0].numpy(),
+                               np.asarray(episodes[0]["actions"], np.float32)[:3].reshape(-1), rtol=1e-6)
+    env = make_minari_eval_env(meta)
+    assert tuple(env.action_spec.shape) == (1,)
+    from tensordict.nn import TensorDictModule
+
+    from torchrl_wbrm.evaluation import evaluate_returns
+
+    # one step with a flat action reaches gym reshaped and unchanged: the same state stepped in plain Pendulum-v1
+    td = env.reset()
+    raw = gym.make("Pendulum-v1")
+    raw.reset(seed=0)
+    from torchrl.envs import TransformedEnv
+
+    gym_env = (env.base_env if isinstance(env, TransformedEnv) else env)._env
+    raw.unwrapped.state = np.array(gym_env.unwrapped.state)
+    td["action"] = torch.tensor([1.5])
+    out = env.step(td)["next"]
+    obs, reward, *_ = raw.step(np.array([1.5], np.float32))
+    np.testing.assert_allclose(out["observation"].numpy(), obs, rtol=1e-6)
+    assert out["reward"].item() == pytest.approx(float(reward), rel=1e-6)
+
+    def act(obs):
+        return torch.as_tensor(pendulum_expert_action(obs.numpy()))
+
+    def zero(obs):
+        return torch.zeros(1)
+
+    swing_up = evaluate_returns(env, TensorDictModule(act, ["observation"], ["action"]), episodes=4, seed=0).mean
+    idle = evaluate_returns(env, TensorDictModule(zero, ["observation"], ["action"]), episodes=4, seed=0).mean
+    assert swing_up > idle + 300  # the policy's actions drive the env (same start states)
+    with pytest.raises(ValueError, match=r"'Pendulum-v1' has the action space Box\(-2.0, 2.0, \(1,\), float32\), the Minari datasets' is Box"):
+        make_minari_eval_env({**meta, "eval_env": "Pendulum-v1", "eval_env_spec": None})
+    # the recipe's trainer runs on them and evaluates through that env (its actor acts in the flat box)
+    from torchrl_wbrm.training import WBRMTrainer
+
+    minari = MinariDataConfig(expert="pendulum_a1x1/expert-v0", behaviour="pendulum_a1x1/behaviour-v0",
+                              data_path=str(tmp_path))
+    results = WBRMTrainer(_tiny_trainer_config(minari), tmp_path / "run", progress=False).run()
+    assert results["status"] == "finished" and np.isfinite(results["final"]["return"])
 
 
 def _tiny_trainer_config(minari: MinariDataConfig) -> dict:

@@ -129,9 +129,6 @@ def _check_spaces(observation_space, action_space, where: str) -> None:
                          f"supported.")
     if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
         raise ValueError(f"{where}: the action space is {action_space}; only a Box or a Discrete is supported.")
-    if isinstance(action_space, spaces.Box) and len(action_space.shape) != 1:
-        raise ValueError(f"{where}: the action space is {action_space}, of shape {action_space.shape}; a Box action "
-                         f"must be one-dimensional (shape (m,)), or a Discrete.")
 
 
 def _action_tensor(actions: np.ndarray, action_space) -> torch.Tensor:
@@ -231,6 +228,8 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         # no registration, so an env registered only where the data were made (a reshaped one) is recovered too
         "eval_env_spec": None if data.eval_env else _recorded_spec_json(expert_ds, behaviour_ds),
         "observation_shape": list(expert_ds.observation_space.shape),
+        # a multi-dimensional Box action is read flat (row-major); the evaluation env reshapes the policy's back
+        "action_shape": list(action_space.shape) if isinstance(action_space, spaces.Box) else None,
         "max_episode_steps": _recorded_max_steps(expert_ds),
         "seed": seed,
         "behaviour_mean_return": _mean_return(behaviour),
@@ -283,7 +282,9 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
     The env is ``gymnasium.make`` of the spec recorded in the dataset (as ``MinariDataset.recover_environment``
     does), or of the id ``env.minari.eval_env``, wrapped in torchrl's ``GymWrapper``. Its observation is cast to
     float32 (``DoubleToFloat``, ``DTypeCastTransform``) and, when multi-dimensional, flattened row-major
-    (``FlattenObservation``), as :func:`read_minari_transitions` reads the data. For a ``Discrete`` action the env is
+    (``FlattenObservation``), as :func:`read_minari_transitions` reads the data; a multi-dimensional ``Box`` action
+    is taken flat and reshaped row-major before it reaches gym (gymnasium's ``TransformAction``). For a ``Discrete``
+    action the env is
     built one-hot (``categorical_action_encoding=False``) and takes the policy's ``n`` scores: the inverse transform
     steps gym with their ``argmax``. Raises a ``ValueError`` when no env is known (datasets that record none, and no
     ``env.minari.eval_env``) or when the env's observation does not match the datasets', and gymnasium's own error
@@ -310,7 +311,18 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
             f"gymnasium env to evaluate on: pass env.minari.eval_env=<gymnasium id>."
         )
     recorded = metadata.get("eval_env_spec")
-    base = GymWrapper(gym.make(EnvSpec.from_json(recorded) if recorded else env_id), categorical_action_encoding=False)
+    genv = gym.make(EnvSpec.from_json(recorded) if recorded else env_id)
+    action_shape = metadata.get("action_shape")
+    if action_shape is not None:
+        if not isinstance(genv.action_space, gym.spaces.Box) or list(genv.action_space.shape) != list(action_shape):
+            raise ValueError(f"The evaluation env {env_id!r} has the action space {genv.action_space}, the Minari "
+                             f"datasets' is {metadata.get('action_space')}.")
+        if len(action_shape) > 1:  # the policy acts flat, as the data were read: reshape its action back (row-major)
+            box = genv.action_space
+            genv = gym.wrappers.TransformAction(
+                genv, lambda a, shape=tuple(box.shape), dtype=box.dtype: np.asarray(a, dtype=dtype).reshape(shape),
+                gym.spaces.Box(box.low.reshape(-1), box.high.reshape(-1), dtype=box.dtype))
+    base = GymWrapper(genv, categorical_action_encoding=False)
     transforms = []
     if metadata.get("discrete_actions"):
         transforms.append(ScoresToOneHot())

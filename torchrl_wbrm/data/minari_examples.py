@@ -83,29 +83,46 @@ def cartpole_expert_action(observation: np.ndarray) -> int:
     return int(theta + 0.5 * omega > 0)
 
 
-def make_reshaped_env(env_id: str, shape, **kwargs):
-    """``gymnasium.make(env_id, **kwargs)`` with its ``Box`` observation reshaped to ``shape`` (``ReshapeObservation``)."""
+def make_reshaped_env(env_id: str, shape=None, action_shape=None, **kwargs):
+    """``gymnasium.make(env_id, **kwargs)`` with its ``Box`` observation reshaped to ``shape``
+    (``ReshapeObservation``) and, if given, its ``Box`` action to ``action_shape`` (the env takes an action of that
+    shape and steps the original with it flattened, row-major)."""
     import gymnasium as gym
     from gymnasium.wrappers import ReshapeObservation
 
-    return ReshapeObservation(gym.make(env_id, **kwargs), tuple(int(n) for n in shape))
+    env = gym.make(env_id, **kwargs)
+    if shape is not None:
+        env = ReshapeObservation(env, tuple(int(n) for n in shape))
+    if action_shape is not None:
+        box, action_shape = env.action_space, tuple(int(n) for n in action_shape)
+        env = gym.wrappers.TransformAction(
+            env, lambda a: np.asarray(a, dtype=box.dtype).reshape(box.shape),
+            gym.spaces.Box(box.low.reshape(action_shape), box.high.reshape(action_shape), dtype=box.dtype))
+    return env
 
 
-def register_reshaped_env(env_id: str, shape) -> str:
-    """Register (once) the gymnasium env ``env_id`` with its observation reshaped to ``shape``; returns its id,
-    ``torchrl_wbrm/<name>_<d1>x<d2>...-v<version>`` (``CartPole-v1``, ``(2, 2)`` -> ``torchrl_wbrm/CartPole_2x2-v1``).
+def register_reshaped_env(env_id: str, shape=None, action_shape=None) -> str:
+    """Register (once) the gymnasium env ``env_id`` with its observation reshaped to ``shape`` (and/or its ``Box``
+    action to ``action_shape``); returns its id, ``torchrl_wbrm/<name>_<d1>x<d2>...-v<version>`` (``CartPole-v1``,
+    ``(2, 2)`` -> ``torchrl_wbrm/CartPole_2x2-v1``; an action shape adds ``_a<d1>x<d2>...``).
     The spec's entry point is :func:`make_reshaped_env`, importable, so a dataset that records it can be evaluated
     in any process (``gymnasium.make`` of the recorded spec)."""
     import gymnasium as gym
     from gymnasium.envs.registration import parse_env_id
 
-    shape = tuple(int(n) for n in shape)
+    if shape is None and action_shape is None:
+        raise ValueError("register_reshaped_env: give an observation shape, an action shape or both.")
+    shape = None if shape is None else tuple(int(n) for n in shape)
+    action_shape = None if action_shape is None else tuple(int(n) for n in action_shape)
     _, name, version = parse_env_id(env_id)
-    new_id = f"torchrl_wbrm/{name}_{'x'.join(map(str, shape))}" + ("" if version is None else f"-v{version}")
+    suffix = ("" if shape is None else "_" + "x".join(map(str, shape))) + (
+        "" if action_shape is None else "_a" + "x".join(map(str, action_shape)))
+    new_id = f"torchrl_wbrm/{name}{suffix}" + ("" if version is None else f"-v{version}")
     if new_id not in gym.registry:
         gym.register(new_id, entry_point=f"{__name__}:make_reshaped_env",
                      max_episode_steps=gym.spec(env_id).max_episode_steps,
-                     kwargs={"env_id": env_id, "shape": list(shape)})
+                     kwargs={"env_id": env_id, "shape": None if shape is None else list(shape),
+                             "action_shape": None if action_shape is None else list(action_shape)})
     return new_id
 
 
