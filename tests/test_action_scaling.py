@@ -99,3 +99,18 @@ def test_iql_policy_scale_is_state_independent(trainers):
     scale = dist.base_dist.scale
     torch.testing.assert_close(scale, scale[:1].expand_as(scale))
     assert bool((dist.base_dist.loc.abs() <= 1).all())
+
+
+def test_unit_q_network_reads_unit_actions_as_the_box_network_reads_box_actions():
+    from torchrl_wbrm.modules import make_q_network
+
+    spec = Bounded(-5.0, 5.0, (2,))
+    scaling = ActionScaling(spec)
+    q_box = make_q_network(3, 2, num_cells=(16,))
+    q_unit = scaling.unit_q_network(q_box)
+    g = torch.Generator().manual_seed(0)
+    obs, a = torch.randn(64, 3, generator=g), 10 * torch.rand(64, 2, generator=g) - 5
+    box = q_box(TensorDict({"observation": obs, "action": a}, [64]))["state_action_value"]
+    unit = q_unit(TensorDict({"observation": obs, "action": scaling.to_unit(a)}, [64]))["state_action_value"]
+    torch.testing.assert_close(unit, box)
+    assert set(dict(q_unit.named_parameters())) == {f"module.net.{k}" for k, _ in q_box.module.named_parameters()}

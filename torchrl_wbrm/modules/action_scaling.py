@@ -8,7 +8,10 @@ action to ``[−1, 1]`` (``MinMaxActionScaler``). An algorithm that works in tho
 - the data's actions into it once, before they enter the replay buffer (:meth:`ActionScaling.scale_data`: the
   trainer's ``Algo.map_data``),
 - the actor's output back to the box for the env (:meth:`ActionScaling.policy`: the evaluated policy),
-- the box actions at which Q̂ is read back to unit actions (:meth:`ActionScaling.q_reader`).
+- the box actions at which Q̂ is read back to unit actions (:meth:`ActionScaling.q_reader`),
+- and Q's input: the losses give Q unit actions, and :meth:`ActionScaling.unit_q_network` maps them back to the box
+  before the network's first layer (a fixed affine input layer: the same function class; measured on LQR exp1,
+  a Q network fed [−1, 1] actions fitted Q* worse: relative error 4.3 against 2.8 for IQL at 1,000 updates).
 
 The map is affine per coordinate, ``u = (a − c) / h`` with ``c = (high + low) / 2`` and ``h = (high − low) / 2``,
 so it is exact up to float rounding and the same for every seed (it holds no state but the box).
@@ -20,8 +23,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
+from torchrl.modules import ValueOperator
 
-__all__ = ["ActionScaling", "FromUnitAction"]
+__all__ = ["ActionScaling", "BoxActionInput", "FromUnitAction"]
 
 
 class FromUnitAction(nn.Module):
@@ -36,12 +40,25 @@ class FromUnitAction(nn.Module):
         return self.centre + self.half_width * unit_action
 
 
+class BoxActionInput(nn.Module):
+    """``(x, u) ↦ net(x, c + h · u)``: a Q network on box actions read with unit actions (a fixed input layer)."""
+
+    def __init__(self, net: nn.Module, centre: torch.Tensor, half_width: torch.Tensor):
+        super().__init__()
+        self.net = net
+        self.to_box = FromUnitAction(centre, half_width)
+
+    def forward(self, observation: torch.Tensor, unit_action: torch.Tensor) -> torch.Tensor:
+        return self.net(observation, self.to_box(unit_action))
+
+
 class ActionScaling:
     """The affine map between the box ``[low, high]`` of a ``Bounded`` action spec and ``[−1, 1]ᵐ``.
 
     Examples:
         >>> import torch
         >>> from torchrl.data import Bounded
+from torchrl.modules import ValueOperator
         >>> scaling = ActionScaling.from_spec(Bounded(-5.0, 5.0, (2,)))
         >>> scaling.to_unit(torch.tensor([5.0, -2.5])).tolist()
         [1.0, -0.5]
@@ -85,6 +102,16 @@ class ActionScaling:
         to_box = TensorDictModule(FromUnitAction(self.centre, self.half_width), in_keys=[self.action_key],
                                   out_keys=[self.action_key])
         return TensorDictSequential(actor, to_box)
+
+    def unit_q_network(self, q_network: ValueOperator) -> ValueOperator:
+        """``q_network`` (of ``(observation, action)`` in the box) read with unit actions: its interface is the unit
+        box, as the losses need, while the network itself still sees box actions (the same function class; only the
+        first layer's input is rescaled, as ``q.normalise_observations`` rescales the observations)."""
+        in_keys, out_keys = list(q_network.in_keys), list(q_network.out_keys)
+        if len(in_keys) != 2:
+            raise ValueError(f"unit_q_network needs a Q network of (observation, action), got in_keys={in_keys}.")
+        return ValueOperator(BoxActionInput(q_network.module, self.centre, self.half_width), in_keys=in_keys,
+                             out_keys=out_keys)
 
     def q_reader(self, q_value):
         """Wrap a reader ``q_value(td) -> (Q̂, action)`` of a unit-action Q so it reads ``td``'s box actions."""
