@@ -58,7 +58,6 @@ class ActionScaling:
     Examples:
         >>> import torch
         >>> from torchrl.data import Bounded
-from torchrl.modules import ValueOperator
         >>> scaling = ActionScaling.from_spec(Bounded(-5.0, 5.0, (2,)))
         >>> scaling.to_unit(torch.tensor([5.0, -2.5])).tolist()
         [1.0, -0.5]
