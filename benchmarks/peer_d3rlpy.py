@@ -18,13 +18,17 @@ What it does, in order (one process at a time, one torch thread each):
    the exact optimum, the recipe's ``eval.seed``) and prints the table, with the seconds per 1,000 updates of each
    (d3rlpy: its ``fit`` loop; this project: the trainer's update steps, batch sampling included; evaluations out).
 
-Everything is written under ``--out`` (default ``results/peer_d3rlpy``); ``summary.json`` holds the table.
+Everything is written under ``--out`` (default ``results/peer_d3rlpy``); ``summary.json`` holds the table. d3rlpy's
+run of an (algo, budget, seed) on the same data (by the sha256 of its arrays) is saved and reused on a later call
+(``--rerun-peer`` to train it again; seeded, it gives the same policy); this project's side is always trained anew.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -122,6 +126,19 @@ def export_data(trainer, path: Path) -> int:
     return d.shape[0]
 
 
+def data_digest(path: Path) -> str:
+    """sha256 of the exported arrays (names, dtypes, shapes, bytes): the same data, whenever it was written."""
+    import numpy as np
+
+    digest = hashlib.sha256()
+    with np.load(path) as data:
+        for name in sorted(data.files):
+            array = np.ascontiguousarray(data[name])
+            digest.update(f"{name}:{array.dtype}:{array.shape}".encode())
+            digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
 def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path | None):
     """Train this project's ``algo``; returns (trainer, final figures, seconds of the update steps)."""
     import torch
@@ -167,6 +184,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=str(ROOT / "results" / "peer_d3rlpy"))
     parser.add_argument("--venv", default=str(VENV))
+    parser.add_argument("--rerun-peer", action="store_true",
+                        help="train d3rlpy again even where its run on the same data, budget and seed is saved")
     parser.add_argument("--peer-worker", nargs=5, metavar=("DATA", "ALGO", "STEPS", "SEED", "POLICY"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -182,14 +201,23 @@ def main(argv=None) -> None:
     rows = []
     for algo in args.algos.split(","):
         steps = args.cql_steps if (algo == "cql" and args.cql_steps) else args.steps
-        trainer, final, own_seconds = project_run(algo, steps, args.seed, out / f"project_{algo}", data_path)
-        policy_path = out / f"d3rlpy_{algo}.pt"
-        proc = subprocess.run([str(peer_python), __file__, "--peer-worker", str(data_path), algo, str(steps),
-                               str(args.seed), str(policy_path)], capture_output=True, text=True,
-                              env={**os.environ, "OMP_NUM_THREADS": "1"})
-        if proc.returncode:
-            raise SystemExit(f"d3rlpy {algo} failed:\n{proc.stderr[-4000:]}")
-        peer = json.loads(proc.stdout.strip().splitlines()[-1])
+        run_dir = out / f"project_{algo}"
+        shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
+        trainer, final, own_seconds = project_run(algo, steps, args.seed, run_dir, data_path)
+        data_sha = data_digest(data_path)
+        policy_path = out / f"d3rlpy_{algo}_{steps}steps_seed{args.seed}.pt"
+        record = policy_path.with_suffix(".json")
+        peer = json.loads(record.read_text()) if record.is_file() and policy_path.is_file() else None
+        if peer is None or peer.get("data_sha256") != data_sha or args.rerun_peer:
+            proc = subprocess.run([str(peer_python), __file__, "--peer-worker", str(data_path), algo, str(steps),
+                                   str(args.seed), str(policy_path)], capture_output=True, text=True,
+                                  env={**os.environ, "OMP_NUM_THREADS": "1"})
+            if proc.returncode:
+                raise SystemExit(f"d3rlpy {algo} failed:\n{proc.stderr[-4000:]}")
+            peer = {**json.loads(proc.stdout.strip().splitlines()[-1]), "data_sha256": data_sha}
+            record.write_text(json.dumps(peer, indent=1, default=str))
+        else:
+            print(f"d3rlpy {algo}: its run on the same data, budget and seed is reused ({record})", flush=True)
         peer_score = score(trainer, policy_path)
         row = {"algo": algo, "steps": steps, "seed": args.seed, "transitions": int(trainer.q_train_data.shape[0]),
                "d3rlpy_regret": peer_score["regret"], "d3rlpy_regret_ci": peer_score["regret_ci"],
