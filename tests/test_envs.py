@@ -6,7 +6,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_wbrm.envs import PAPER_EXPERIMENTS, REWARD_CAP_87_84, LQRConfig, LQREnv, make_lqr_env

@@ -11,7 +11,6 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.data import Bounded
 from torchrl.modules import ValueOperator
 from torchrl.objectives import SoftUpdate
 
@@ -141,7 +140,9 @@ def test_empty_batch_and_non_finite_inputs_are_refused():
 # ---------------------------------------------------------------------- RobustDensityRatioLoss
 def _ratio_data(n_b=6, n_e=5, obs_b=2, obs_e=2):
     g = torch.Generator().manual_seed(1)
-    side = lambda n, d: TensorDict({"observation": torch.randn(n, d, generator=g), "action": torch.randn(n, 1, generator=g)}, [n])
+    def side(n, d):
+        return TensorDict({"observation": torch.randn(n, d, generator=g), "action": torch.randn(n, 1, generator=g)}, [n])
+
     return TensorDict({"behaviour": side(n_b, obs_b), "expert": side(n_e, obs_e)}, [])
 
 
