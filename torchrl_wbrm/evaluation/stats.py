@@ -7,7 +7,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 import torch
-from scipy import stats as _stats
+from scipy.special import stdtrit as _student_t_quantile  # scipy.stats.t.ppf, without importing scipy.stats (~3 s)
 
 __all__ = ["MeanCI", "mean_ci", "bootstrap_ci"]
 
@@ -54,7 +54,7 @@ def mean_ci(values: Sequence[float] | torch.Tensor, level: float = 0.95) -> Mean
     if n == 1:
         return MeanCI(mean, float("nan"), float("nan"), float("nan"), 1, level)
     se = float(arr.std(ddof=1) / math.sqrt(n))
-    t = float(_stats.t.ppf(0.5 + level / 2, df=n - 1))
+    t = float(_student_t_quantile(n - 1, 0.5 + level / 2))
     return MeanCI(mean, se, mean - t * se, mean + t * se, n, level)
 
 
