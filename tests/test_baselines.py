@@ -36,7 +36,7 @@ from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
 from tests.test_training import tiny_config
 
-#: one xdist worker runs this module: its module-scoped runs are computed once (``pytest -n 2 --dist loadgroup``)
+#: one xdist worker runs this module (``pytest -n 2 --dist loadgroup``); its cached runs are session-scoped
 pytestmark = pytest.mark.xdist_group("baselines")
 
 BELLMAN_FAMILY = ("wbrm", "brm", "fqi", "mabo")  # WeightedBellmanLoss and its subclass: held-out residual, γ by value
@@ -51,7 +51,7 @@ RECIPE_TINY = [
 ]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def recipe_runs(tmp_path_factory):
     """One ``python recipes/wbrm_offline.py -m algo=<all>`` (Hydra's basic launcher, one job after another), with the
     recipe's defaults for plots and logger; returns (the sweep directory, the completed process)."""
@@ -148,9 +148,11 @@ Q_FACTOR = 2.0
 _RUN_DIRS: list[str] = []
 
 
-@pytest.fixture(scope="module", autouse=True)
+@pytest.fixture(scope="session", autouse=True)
 def _forget_learning_runs():
-    """The learning runs are cached for this module's tests only: drop them (and their run directories) after it."""
+    """The learning runs are cached for this module's tests: drop them (and their run directories) at the end of the
+    session (session-scoped: under xdist a worker may interleave other modules' tests, and a module-scoped finaliser
+    would then drop the cache between this module's tests and train again)."""
     yield
     _learned.cache_clear()
     for run_dir in _RUN_DIRS:

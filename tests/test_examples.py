@@ -17,7 +17,8 @@ import pytest
 
 from tests.references import reference_regrets
 
-#: one xdist worker runs this module: its module-scoped runs are computed once (``pytest -n 2 --dist loadgroup``)
+#: one xdist worker runs this module (``pytest -n 2 --dist loadgroup``), and its runs are session-scoped fixtures:
+#: a worker may interleave another module's tests, which would tear a module-scoped fixture down and run it again
 pytestmark = pytest.mark.xdist_group("examples")
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +37,7 @@ print(json.dumps(out))
 """
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def outputs(tmp_path_factory):
     log_dir = tmp_path_factory.mktemp("example_logs")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
@@ -56,7 +57,7 @@ def _figure(text: str, label: str, what: str = "regret") -> float:
     return float(match.group(1))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def regrets():
     """Exact regrets of reference policies on LQR exp1: the behaviour mean ``a = −0.5Kx`` and the zero action."""
     return reference_regrets("exp1")
