@@ -31,14 +31,6 @@ import os
 from pathlib import Path
 
 SYSTEMS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "lqr_large_f"]
-STUDY_BUDGET = [
-    "q.eval_every=1500",  # evaluations every 1500 steps (the histories show the learning curves)
-    "eval.episodes=1000",
-    "eval.q_samples=5000",
-    "logger=none",
-    "plots=false",
-    "checkpoint_every=0",
-]
 DEFAULT = "default"
 #: block -> {level: overrides}; the recipe's default is the level named ``DEFAULT`` of every block (run once)
 BLOCKS: dict[str, dict[str, list[str]]] = {
@@ -302,9 +294,9 @@ def main() -> None:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, 'mountain_car']}")
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
-    from torchrl_wbrm.training.runs import QUICK_BUDGET, run_cells
+    from torchrl_wbrm.training.runs import Q_ACCURACY_BUDGET, QUICK_BUDGET, run_cells
 
-    budget = QUICK_BUDGET if args.quick else STUDY_BUDGET
+    budget = QUICK_BUDGET if args.quick else Q_ACCURACY_BUDGET
 
     cells = build_cells(args.quick, args.blocks, args.systems, args.factor_systems)
     for cell in cells:

@@ -207,8 +207,9 @@ def test_the_studies_budgets_are_the_packages():
     assert runs.QUICK_BUDGET[-3:] == runs.QUIET == ["logger=none", "plots=false", "checkpoint_every=0"]
     assert runs.WEIGHTING_BUDGET == ["ratio.steps=1000", "q.steps=2000", "q.eval_every=2000", "eval.episodes=1000",
                                      "eval.q_samples=5000", *runs.QUIET]
+    assert runs.Q_ACCURACY_BUDGET == ["q.eval_every=1500", "eval.episodes=1000", "eval.q_samples=5000", *runs.QUIET]
     for budget in (runs.TABLE_BUDGET, runs.TABLE_QUICK_BUDGET, runs.WEIGHTING_BUDGET, runs.CONVERGENCE_BUDGET,
-                   runs.CONVERGENCE_QUICK_BUDGET, runs.QUICK_BUDGET):
+                   runs.CONVERGENCE_QUICK_BUDGET, runs.QUICK_BUDGET, runs.Q_ACCURACY_BUDGET):
         _compose(*budget)  # each composes with the recipe's config
 
 

@@ -18,6 +18,7 @@ __all__ = [
     "CONVERGENCE_BUDGET",
     "CONVERGENCE_QUICK_BUDGET",
     "LABELS",
+    "Q_ACCURACY_BUDGET",
     "QUICK_BUDGET",
     "QUIET",
     "TABLE_BUDGET",
@@ -64,6 +65,10 @@ TABLE_QUICK_BUDGET = [
     "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "eval.episodes=20", "eval.train_episodes=1",
     "eval.q_samples=200",
 ]
+
+#: ``recipes/q_accuracy_study.py``: the recipe's own training budget, evaluated every 1,500 steps (the histories show
+#: the learning curves) on 1,000 episodes and 5,000 Q samples.
+Q_ACCURACY_BUDGET = ["q.eval_every=1500", "eval.episodes=1000", "eval.q_samples=5000", *QUIET]
 
 #: ``recipes/weighting_study.py``: 1,000 ratio steps, 2,000 Q steps, 1,000 evaluation episodes.
 WEIGHTING_BUDGET = [
