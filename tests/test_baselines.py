@@ -36,8 +36,7 @@ from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
 from tests.test_training import tiny_config
 
-#: one xdist worker runs this module (``pytest -n 2 --dist loadgroup``); its cached runs are session-scoped
-pytestmark = pytest.mark.xdist_group("baselines")
+#: one xdist worker runs this module (``pytest -n 2 --dist loadfile``): its shared runs are computed once
 
 BELLMAN_FAMILY = ("wbrm", "brm", "fqi", "mabo")  # WeightedBellmanLoss and its subclass: held-out residual, γ by value
 

@@ -17,9 +17,7 @@ import pytest
 
 from tests.references import reference_regrets
 
-#: one xdist worker runs this module (``pytest -n 2 --dist loadgroup``), and its runs are session-scoped fixtures:
-#: a worker may interleave another module's tests, which would tear a module-scoped fixture down and run it again
-pytestmark = pytest.mark.xdist_group("examples")
+#: one xdist worker runs this module (``pytest -n 2 --dist loadfile``): its shared runs are computed once
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr"]
