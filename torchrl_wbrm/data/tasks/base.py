@@ -1,6 +1,7 @@
 """What the trainer, the algos and the recipes need to know about an environment, in one object per env kind."""
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import torch
@@ -24,7 +25,7 @@ def to_dataclass(cls, value):
     return cls(**value)
 
 
-class Evaluator:
+class Evaluator(ABC):
     """Scores a policy (and Q̂) on fresh episodes of one env.
 
     Attributes:
@@ -39,12 +40,13 @@ class Evaluator:
     def __init__(self) -> None:
         self.eval_samples = {}
 
+    @abstractmethod
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         """Flat dict of floats: ``return`` (with ``_ci``, ``_stderr``) and whatever else the env can score."""
         raise NotImplementedError
 
 
-class Task:
+class Task(ABC):
     """One environment kind (``env.kind``): its data, its action box, γ, its evaluator and its ground truth.
 
     A task is made from the env config (:func:`~torchrl_wbrm.data.tasks.get_task`) before any data exist (to check
@@ -69,6 +71,7 @@ class Task:
     def validate(self) -> None:
         """Check the env's data settings before any data are collected; ``ValueError`` naming the key."""
 
+    @abstractmethod
     def make_datasets(self, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
         """Collect (or read) the three sets ``D``, ``S^b``, ``S^e``."""
         raise NotImplementedError
@@ -86,6 +89,7 @@ class Task:
     def _action_dim(self) -> int:
         return self.datasets.transitions[:]["action"].shape[-1]
 
+    @abstractmethod
     def action_spec(self) -> Bounded:
         """The action box the actors are bounded to."""
         raise NotImplementedError
@@ -94,10 +98,12 @@ class Task:
         """``override`` (``q.gamma``) or the env's own discount."""
         return override or self.default_gamma
 
+    @abstractmethod
     def action_grid(self, num_bins: int) -> ActionGrid:
         """The env's discretised action box (``algo=dqn``)."""
         raise NotImplementedError
 
+    @abstractmethod
     def evaluator(self, eval_cfg) -> Evaluator:
         """The evaluator (``eval_cfg``: :class:`~torchrl_wbrm.training.config.EvalConfig`'s fields)."""
         raise NotImplementedError
@@ -127,5 +133,7 @@ class Task:
         return datasets, torch.cat(calls[:-1], 0), calls[-1]
 
     def minari_env_kwargs(self, behaviour) -> dict:
-        """What :func:`~torchrl_wbrm.data.write_minari_dataset` records of the env: a gymnasium id, or the spaces."""
-        raise NotImplementedError
+        """What :func:`~torchrl_wbrm.data.write_minari_dataset` records of the env: a gymnasium id, or the spaces.
+        Only the tasks whose data the project makes itself can be exported (``make_dataset format=minari``)."""
+        raise NotImplementedError(f"{type(self).__name__} (env.kind={self.kind!r}) cannot be exported as a Minari "
+                                  f"dataset: make_dataset format=minari writes the project's own envs.")
