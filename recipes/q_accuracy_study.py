@@ -12,7 +12,7 @@ Systems: the paper's LQR exp1-3 and two not in the paper: ``lqr_nondiag`` (coupl
 (F = 0.9 I). Factors: Q's hidden activation (ReLU, SiLU, ELU, GELU, Tanh), the target rate τ, the batch size, a
 learning-rate schedule (cosine, the default, or constant), the step budget (1500, 3000 or 6000 steps, each its own
 run: the cosine schedule anneals over the budget), a two-network ensemble (mean or min),
-reward/target scaling (Q = s · MLP), and the weight shaping of ŵ (temper / mix, unweighted beside them).
+reward/target scaling (Q = s · MLP), and the weight shaping of ŵ (temper / mix / clip, unweighted beside them).
 
 Selection uses no ground truth: within each block, the level with the lowest held-out Bellman residual (unweighted
 mean δ² on behaviour episodes held out of D), as a geometric mean over systems of its ratio to the default's on the
@@ -46,6 +46,7 @@ BLOCKS: dict[str, dict[str, list[str]]] = {
         "learned ŵ": ["ratio.temper=1.0"],
         "learned ŵ^0.5": ["ratio.temper=0.5"],
         "learned ½ + ½ŵ": ["ratio.temper=1.0", "ratio.mix=0.5"],
+        "learned min(ŵ, 10)": ["ratio.temper=1.0", "ratio.clip=10.0"],
         "unweighted": ["ratio.source=none"],
     },
     "ensemble": {
