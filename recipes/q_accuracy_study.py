@@ -212,6 +212,33 @@ def selection_verdict(chosen: str, intervals: dict) -> str:
         ")" if beyond else ", within the noise)")
 
 
+def overview(records: list[dict], path: str, digits: int) -> str:
+    """One row per level, one column per system: ``mean ± 95% CI`` over the level's seeds of the figure at dotted
+    ``path``; the defaults first, over seeds 0-2 (the seeds of the 3-seed levels) and over all their seeds."""
+    from torchrl_wbrm.training.reporting import ci_cell
+
+    systems = [s for s in SYSTEMS if any(r["study"]["env"] == s for r in records)]
+    defaults = [r for r in records if r["study"]["block"] == DEFAULT]
+    if not systems or not defaults:
+        return ""
+    lines = ["| block | level | seeds | " + " | ".join(systems) + " |", "|---|---|---|" + "---|" * len(systems)]
+
+    def row(block, level, recs):
+        seeds = sorted({r["seed"] for r in recs})
+        span = f"{seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) else ",".join(map(str, seeds))
+        cells = [ci_cell([r for r in recs if r["study"]["env"] == env], path, digits) for env in systems]
+        lines.append(f"| {block} | {level} | {span} | " + " | ".join(cells) + " |")
+
+    row(DEFAULT, "the recipe's defaults", [r for r in defaults if r["seed"] < 3])
+    row(DEFAULT, "the recipe's defaults", defaults)
+    for block, levels in BLOCKS.items():
+        for level in levels:
+            recs = [r for r in records if r["study"]["block"] == block and r["study"]["method"] == level]
+            if recs and not _is_default(level):
+                row(block, level, recs)
+    return "\n".join(lines)
+
+
 def tables(out: Path) -> str:
     from torchrl_wbrm.training.reporting import results_table
 
@@ -242,6 +269,11 @@ def tables(out: Path) -> str:
         scored = ", ".join(f"{k}: {v:.3f}" for k, v in sorted(scores.items(), key=lambda kv: kv[1]))
         selections.append(f"| {block} | {selection_verdict(chosen, intervals)} | {scored} |")
     parts.append("### Selection (no ground truth)\n\n" + "\n".join(selections))
+    for title, path, digits in (("paired regret", "final.regret", 4), ("Q̂ error / spread of Q* (expert)",
+                                                                         "final.q_error_expert", 3)):
+        table = overview(records, path, digits)
+        if table:
+            parts.append(f"### Every level on every system: {title}\n\n" + table)
     mc = [r for r in records if r["study"]["block"] == "mountain_car"]
     if mc:
         parts.append("### MountainCarContinuous-v0 (100 episodes per seed)\n\n" + results_table(
