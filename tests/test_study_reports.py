@@ -1,0 +1,203 @@
+"""The studies' reports on synthetic results: the convergence slopes' bootstrap intervals, the paper tables' learning
+curves and "budget and convergence" table, and the LQR tables over every LQR env that ran (issue 16).
+
+No training: each test writes the ``results.json`` / ``history.json`` fields the report reads into ``tmp_path``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import convergence_study  # noqa: E402
+import paper_tables  # noqa: E402
+
+SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
+
+
+# ---------------------------------------------------------------------- convergence_study: bootstrap slopes
+def _synthetic(noise: float, runs: int = 5, slope: float = -0.5, seed: int = 0):
+    """error = 3 n^slope, times log-normal noise of scale ``noise``, ``runs`` runs per size."""
+    rng = np.random.default_rng(seed)
+    sizes = np.repeat(SIZES, runs)
+    return sizes, 3.0 * sizes.astype(float) ** slope * np.exp(rng.normal(0.0, noise, sizes.size))
+
+
+def test_bootstrap_slope_recovers_a_known_slope_and_widens_with_noise():
+    quiet = convergence_study.bootstrap_slope(*_synthetic(0.05))
+    noisy = convergence_study.bootstrap_slope(*_synthetic(0.4))
+    for ci in (quiet, noisy):
+        assert ci.low < ci.slope < ci.high
+        assert ci.low <= -0.5 <= ci.high, ci
+    assert abs(quiet.slope + 0.5) < 0.02
+    assert (noisy.high - noisy.low) > 4 * (quiet.high - quiet.low)
+    assert quiet.high - quiet.low > 0.005  # an interval, not a point
+    # the least-squares slope is fit_slope's, and the interval is reproducible (numpy seed fixed)
+    sizes, errors = _synthetic(0.4)
+    assert noisy.slope == pytest.approx(convergence_study.fit_slope(sizes, errors))
+    assert convergence_study.bootstrap_slope(sizes, errors) == noisy
+    assert convergence_study.bootstrap_slope(sizes, errors, seed=1) != noisy
+
+
+def test_bootstrap_slope_resamples_within_each_size():
+    """Two runs per size, one exactly on n^-1 and one on 2 n^-1 at every size: any within-size resample keeps the
+    slope -1 (a resample across sizes would not), so the interval is the point -1."""
+    sizes = np.repeat(SIZES, 2)
+    errors = np.array([c / n for n in SIZES for c in (1.0, 2.0)])
+    ci = convergence_study.bootstrap_slope(sizes, errors, resamples=500)
+    assert ci.slope == pytest.approx(-1.0)
+    assert ci.high - ci.low < 0.35 and ci.low <= -1.0 + 1e-9 and ci.high >= -1.0 - 1e-9
+    one = convergence_study.bootstrap_slope(SIZES, [1.0 / n for n in SIZES])
+    assert np.isnan(one.low) and "one run per size" in one.format()
+    with pytest.raises(ValueError, match="two sizes"):
+        convergence_study.bootstrap_slope([1000, 1000], [0.1, 0.2])
+
+
+def test_convergence_report_writes_the_slopes_with_their_intervals(tmp_path):
+    sizes, errors = _synthetic(0.2, runs=3)
+    records = [(kind, int(n), seed % 3, {"ratio": {"ratio_relative_l2": float(e)}, "final": {"q_error_expert": float(e)}})
+               for kind in ("ratio", "q") for seed, (n, e) in enumerate(zip(sizes, errors))]
+    text = convergence_study.report(records, tmp_path)
+    ci = convergence_study.bootstrap_slope(sizes, errors)
+    assert (tmp_path / "convergence.png").is_file()
+    md = (tmp_path / "convergence.md").read_text()
+    assert md.strip() == text.strip()
+    assert f"| ratio | {ci.format()} | α=1: −1/6, α=2: −1/4, α→∞: −1/2 |" in md
+    assert f"| q | {ci.format()} | β=1: −1/6, β=2: −1/4, β→∞: −1/2 |" in md
+    assert f"Fitted log-log slopes: ratio: {ci.format()}, q: {ci.format()}" in md
+    assert "| ratio | 1000 | 3 |" in md
+
+
+def test_convergence_cells_take_the_sizes():
+    cells = convergence_study.build_cells(False, ratio_sizes=[500, 5000], q_sizes=[3000])
+    assert [(c["block"], c["n"]) for c in cells] == [("ratio", 500), ("ratio", 5000), ("q", 3000)]
+    assert [c["n"] for c in convergence_study.build_cells(True)] == SIZES[:2] * 2
+
+
+# ---------------------------------------------------------------------- paper_tables: curves and LQR envs
+def _run(out: Path, env: str, algo: str, seed: int, curve: dict[int, float], *, steps: int | None = None,
+         lqr: bool = True, optimum: float = 85.0) -> None:
+    """A fake run: results.json with the fields the report reads, history.json with ``curve`` as its q stage."""
+    run = out / env / algo / f"seed{seed}"
+    run.mkdir(parents=True)
+    metric = "regret" if lqr else "return"
+    last = curve[max(curve)]
+    final = ({"regret": last, "return": optimum - last, "optimal_return_exact": optimum, "q_error_expert": 0.1,
+              "q_bias_expert": -0.1, "q_bias_behaviour": 0.2} if lqr else {"return": last})
+    results = {"status": "finished", "env": env, "algo": algo, "seed": seed, "final": final, "wall_seconds": 10.0,
+               "config": {"env": {"name": env, "kind": "lqr" if lqr else "mountain_car"},
+                          "q": {"steps": steps or max(curve)}}}
+    (run / "results.json").write_text(json.dumps(results))
+    history = [{"stage": "ratio", "step": 5, "held_out_loss": 0.3}]
+    history += [{"stage": "q_train", "step": s, "loss": 1.0} for s in curve]
+    history += [{"stage": "q", "step": s, metric: v, f"{metric}_ci": 0.01} for s, v in curve.items()]
+    (run / "history.json").write_text(json.dumps(history))
+
+
+def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
+    # wbrm on lqr_exp1: regret 0.4, 0.2, 0.1, 0.095 (seed 0) and 0.6, 0.4, 0.3, 0.305 (seed 1): flat at the end
+    _run(tmp_path, "lqr_exp1", "wbrm", 0, {500: 0.4, 1000: 0.2, 1500: 0.1, 2000: 0.095})
+    _run(tmp_path, "lqr_exp1", "wbrm", 1, {500: 0.6, 1000: 0.4, 1500: 0.3, 2000: 0.305})
+    # td3bc: still falling (0.2 -> 0.1) ; fqi: past its best (0.05 at step 1000, then 0.2)
+    _run(tmp_path, "lqr_exp1", "td3bc", 0, {500: 0.4, 1000: 0.3, 1500: 0.2, 2000: 0.1})
+    _run(tmp_path, "lqr_exp1", "fqi", 0, {500: 0.1, 1000: 0.05, 1500: 0.1, 2000: 0.2}, steps=2000)
+    # iql: the last two agree (×1.05) but both are far above the best, at step 500: past its best, not flat
+    _run(tmp_path, "lqr_exp1", "iql", 0, {500: 0.05, 1000: 0.2, 1500: 0.4, 2000: 0.42})
+    # MountainCar return: 80 -> 90 -> 93, budget 3000 (a chosen, longer budget)
+    _run(tmp_path, "mountain_car", "wbrm", 0, {1000: 80.0, 2000: 90.0, 3000: 93.0}, lqr=False)
+
+    from torchrl_wbrm.training.reporting import load_results
+
+    curves = paper_tables.learning_curves(load_results(tmp_path))
+    wbrm = curves[("lqr_exp1", "wbrm")]
+    assert wbrm["metric"] == "regret" and wbrm["steps"] == [500, 1000, 1500, 2000] and wbrm["budget"] == [2000]
+    assert wbrm["mean"] == pytest.approx([0.5, 0.3, 0.2, 0.2]) and wbrm["n"] == [2, 2, 2, 2]
+    assert wbrm["low"][0] < 0.5 < wbrm["high"][0]  # a Student-t band over the two seeds
+    assert wbrm["high"][0] - wbrm["low"][0] == pytest.approx(2 * 12.706 * 0.1, rel=1e-3)
+    assert curves[("mountain_car", "wbrm")]["metric"] == "return"
+    assert curves[("mountain_car", "wbrm")]["budget"] == [3000]
+
+    verdicts = {k: paper_tables.curve_verdict(c) for k, c in curves.items()}
+    assert verdicts[("lqr_exp1", "wbrm")]["verdict"] == "flat"
+    assert verdicts[("lqr_exp1", "wbrm")]["vs_previous"] == pytest.approx(1.0)
+    assert verdicts[("lqr_exp1", "td3bc")]["verdict"] == "still improving"
+    assert verdicts[("lqr_exp1", "td3bc")]["vs_previous"] == pytest.approx(0.5)
+    fqi = verdicts[("lqr_exp1", "fqi")]
+    assert fqi["verdict"] == "past its best" and fqi["best_step"] == 1000 and fqi["vs_best"] == pytest.approx(4.0)
+    iql = verdicts[("lqr_exp1", "iql")]
+    assert iql["verdict"] == "past its best" and iql["vs_previous"] == pytest.approx(1.05) and iql["best_step"] == 500
+    car = verdicts[("mountain_car", "wbrm")]
+    assert car["verdict"] == "still improving" and car["vs_previous"] == pytest.approx(3.0)
+    assert car["best"] == pytest.approx(90.0)
+
+    text = paper_tables.tables(tmp_path)
+    assert "### Budget and convergence" in text
+    assert "| lqr_exp1 | fqi | regret | 2000 | 4 | 0.1000 | 0.2000 | 0.0500 (1000) | ×2.00 | ×4.00 | past its best |" in text
+    assert "| lqr_exp1 | wbrm | regret | 2000 | 4 | 0.2000 | 0.2000 | 0.2000 (1500) | ×1.00 | ×1.00 | flat |" in text
+    assert "| mountain_car | wbrm | return | 3000 | 3 | 90.00 | 93.00 | 90.00 (2000) | +3.00 | +3.00 | still improving |" in text
+
+    path = paper_tables.plot_learning_curves(tmp_path)
+    assert path == tmp_path / "learning_curves.png" and path.stat().st_size > 10_000
+
+
+def test_the_learning_curves_figure_draws_a_panel_per_env_and_a_line_per_budget(tmp_path, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    _run(tmp_path, "lqr_exp1", "wbrm", 0, {500: 0.4, 1000: 0.2})
+    _run(tmp_path, "lqr_exp1", "brm", 0, {500: 0.5, 1000: 0.3, 1500: 0.25}, steps=1500)
+    _run(tmp_path, "mountain_car", "wbrm", 0, {1000: 80.0, 2000: 90.0}, lqr=False)
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to look at it
+    paper_tables.plot_learning_curves(tmp_path)
+    (fig,) = figures
+    lqr, car = fig.axes
+    assert lqr.get_yscale() == "log" and car.get_yscale() == "linear"
+    assert "lqr_exp1" in lqr.get_title() and "mountain_car" in car.get_title()
+    # two curves and a vertical line at each budget (1000 for wbrm, 1500 for brm) in the LQR panel
+    vertical = sorted(line.get_xdata()[0] for line in lqr.get_lines() if line.get_linestyle() == "--")
+    assert vertical == [1000, 1500]
+    curves = [line for line in lqr.get_lines() if line.get_linestyle() == "-"]
+    assert sorted(len(line.get_xdata()) for line in curves) == [2, 3]
+    assert sorted(t.get_text() for t in fig.legends[0].get_texts()) == ["brm", "wbrm"]
+
+
+def test_paper_tables_cover_every_lqr_env_that_ran(tmp_path):
+    """A run of lqr_nondiag (not in the paper) enters Table 2 and every LQR table with its own exact optimum, and
+    the figures; the default envs include it."""
+    assert "lqr_nondiag" in paper_tables.DEFAULT_ENVS
+    assert (ROOT / "configs" / "env" / "lqr_nondiag.yaml").is_file()
+    _run(tmp_path, "lqr_exp1", "wbrm", 0, {1000: 0.02, 2000: 0.01}, optimum=85.435)
+    _run(tmp_path, "lqr_nondiag", "wbrm", 0, {1000: 0.5, 2000: 0.25}, optimum=71.25)
+    _run(tmp_path, "lqr_nondiag", "td3bc", 0, {1000: 0.5, 2000: 0.125}, optimum=71.25)
+    text = paper_tables.tables(tmp_path)
+    assert "| algorithm | lqr_exp1 return | lqr_nondiag return | paper (exp1, exp2, exp3) |" in text
+    assert "| exact optimum | 85.435 | 71.250 | 87.84 (the reward cap) |" in text
+    assert "| wbrm | 85.425 | 71.000 | 86.65, 86.74, 87.10 |" in text
+    assert "| td3bc | – | 71.125 | – |" in text
+    for title in ("paired regret", "Q̂ error", "on expert samples", "on behaviour samples"):
+        block = next(part for part in text.split("### ") if part.startswith("LQR: ") and title in part)
+        assert "| algorithm | lqr_exp1 | lqr_nondiag |" in block, title
+    assert "| td3bc | – | 0.1250 |" in text  # the regret table
+    assert "Table 3" not in text
+    assert "| lqr_nondiag | td3bc | regret | 2000 | 2 |" in text
+    paper_tables.plot(tmp_path)
+    assert (tmp_path / "paper_tables.png").is_file()
+
+
+def test_an_lqr_env_is_known_by_its_config_not_its_name():
+    assert paper_tables.is_lqr({"env": "my_system", "config": {"env": {"kind": "lqr"}}})
+    assert not paper_tables.is_lqr({"env": "lqr_like_name", "config": {"env": {"kind": "mountain_car"}}})
+    assert paper_tables.is_lqr({"env": "x", "final": {"optimal_return_exact": 1.0}})  # results without a config
+    lqr, other = paper_tables.split_envs([
+        {"env": "lqr_nondiag", "config": {"env": {"kind": "lqr"}}}, {"env": "lqr_exp2", "config": {"env": {"kind": "lqr"}}},
+        {"env": "mountain_car", "config": {"env": {"kind": "mountain_car"}}}])
+    assert lqr == ["lqr_exp2", "lqr_nondiag"] and other == ["mountain_car"]
