@@ -203,7 +203,7 @@ def test_the_studies_budgets_are_the_packages():
     from torchrl_wbrm.training import runs
 
     assert runs.TABLE_BUDGET == ["q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000",
-                                 "q.eval_every=1000", "eval.train_episodes=200", "baselines.cql.num_random=4"]
+                                 "q.eval_every=500", "eval.train_episodes=200", "baselines.cql.num_random=4"]
     assert runs.QUICK_BUDGET[-3:] == runs.QUIET == ["logger=none", "plots=false", "checkpoint_every=0"]
     assert runs.WEIGHTING_BUDGET == ["ratio.steps=1000", "q.steps=2000", "q.eval_every=2000", "eval.episodes=1000",
                                      "eval.q_samples=5000", *runs.QUIET]
