@@ -27,24 +27,29 @@ import argparse
 import os
 from pathlib import Path
 
+#: Every weighted level states its whole shaping (temper, clip, mix), so that its label holds whatever the recipe's
+#: defaults are: the recipe's default is ŵ^0.25, and a level that set only ``ratio.source`` would inherit it.
+RAW = ["ratio.temper=1.0", "ratio.clip=null", "ratio.mix=0.0"]
 WEIGHTING = {
     "unweighted": ["ratio.source=none"],
-    "learned ŵ (paper)": ["ratio.source=learned"],
-    "exact w": ["ratio.source=exact"],
-    "learned ŵ, Ψ=20": ["ratio.source=learned", "ratio.bounds=[0.001,20.0]"],
-    "learned relative ŵ, β=½": ["ratio.source=learned", "ratio.relative_beta=0.5"],
-    "learned ŵ^0.25": ["ratio.source=learned", "ratio.temper=0.25"],
-    "learned min(ŵ, 10)": ["ratio.source=learned", "ratio.clip=10.0"],
-    "learned ½ + ½ŵ": ["ratio.source=learned", "ratio.mix=0.5"],
-    "exact ½ + ½w": ["ratio.source=exact", "ratio.mix=0.5"],
+    "learned ŵ (paper)": ["ratio.source=learned", *RAW],
+    "exact w": ["ratio.source=exact", *RAW],
+    "learned ŵ, Ψ=20": ["ratio.source=learned", *RAW, "ratio.bounds=[0.001,20.0]"],
+    "learned relative ŵ, β=½": ["ratio.source=learned", *RAW, "ratio.relative_beta=0.5"],
+    "learned ŵ^0.25 (the recipe's default)": ["ratio.source=learned", "ratio.temper=0.25", "ratio.clip=null",
+                                              "ratio.mix=0.0"],
+    "learned min(ŵ, 10)": ["ratio.source=learned", *RAW, "ratio.clip=10.0"],
+    "learned ½ + ½ŵ": ["ratio.source=learned", *RAW, "ratio.mix=0.5"],
+    "exact ½ + ½w": ["ratio.source=exact", *RAW, "ratio.mix=0.5"],
     "unweighted + BC": ["ratio.source=none", "q.bc_alpha=2.5"],
-    "learned ŵ + BC": ["ratio.source=learned", "q.bc_alpha=2.5"],
+    "learned ŵ + BC": ["ratio.source=learned", *RAW, "q.bc_alpha=2.5"],
     "BC of the expert alone": ["algo=bc"],
 }
 #: exp2 and exp3 run the main contrasts only (the full grid on exp1), to fit the study in about an hour here
-OTHER_ENV_METHODS = ["unweighted", "learned ŵ (paper)", "exact w", "learned ŵ^0.25", "learned ½ + ½ŵ",
-                     "learned ŵ + BC", "BC of the expert alone"]
-REGIME_METHODS = ["unweighted", "learned ŵ (paper)", "exact w", "learned ½ + ½ŵ"]
+OTHER_ENV_METHODS = ["unweighted", "learned ŵ (paper)", "exact w", "learned ŵ^0.25 (the recipe's default)",
+                     "learned ½ + ½ŵ", "learned ŵ + BC", "BC of the expert alone"]
+REGIME_METHODS = ["unweighted", "learned ŵ (paper)", "exact w", "learned ½ + ½ŵ",
+                  "learned ŵ^0.25 (the recipe's default)"]
 REGIMES = {
     "expert τ=0.2": ["env.lqr_data.expert_tau=0.2"],
     "expert τ=0.5 (poor)": ["env.lqr_data.expert_tau=0.5"],
@@ -53,7 +58,8 @@ REGIMES = {
 }
 MOUNTAIN_CAR = {
     "unweighted": ["ratio.source=none"],
-    "learned ŵ (paper)": ["ratio.source=learned"],
+    "learned ŵ (paper)": WEIGHTING["learned ŵ (paper)"],
+    "learned ŵ^0.25 (the recipe's default)": WEIGHTING["learned ŵ^0.25 (the recipe's default)"],
 }
 
 

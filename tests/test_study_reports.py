@@ -201,3 +201,38 @@ def test_an_lqr_env_is_known_by_its_config_not_its_name():
         {"env": "lqr_nondiag", "config": {"env": {"kind": "lqr"}}}, {"env": "lqr_exp2", "config": {"env": {"kind": "lqr"}}},
         {"env": "mountain_car", "config": {"env": {"kind": "mountain_car"}}}])
     assert lqr == ["lqr_exp2", "lqr_nondiag"] and other == ["mountain_car"]
+
+
+# ---------------------------------------------------------------------- weighting_study: each label's shaping
+def test_weighting_study_levels_set_the_shaping_their_labels_name():
+    """A level's label holds whatever the recipe's default shaping is (ŵ^0.25 today): the paper's ŵ and the exact
+    w are untempered, unclipped and unmixed; each shaped level changes exactly the named part."""
+    from hydra import compose, initialize_config_dir
+
+    import weighting_study
+    from torchrl_wbrm.training import register_configs
+
+    register_configs()
+    expected = {  # label -> (source, temper, clip, mix)
+        "learned ŵ (paper)": ("learned", 1.0, None, 0.0),
+        "exact w": ("exact", 1.0, None, 0.0),
+        "learned ŵ^0.25 (the recipe's default)": ("learned", 0.25, None, 0.0),
+        "learned min(ŵ, 10)": ("learned", 1.0, 10.0, 0.0),
+        "learned ½ + ½ŵ": ("learned", 1.0, None, 0.5),
+        "exact ½ + ½w": ("exact", 1.0, None, 0.5),
+        "learned ŵ + BC": ("learned", 1.0, None, 0.0),
+    }
+    cells = weighting_study.build_cells(quick=False)
+    seen = set()
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        default = compose("wbrm_offline").ratio
+        for cell in cells:
+            label = cell["method"]
+            if label not in expected:
+                continue
+            ratio = compose("wbrm_offline", overrides=cell["overrides"]).ratio
+            assert (ratio.source, ratio.temper, ratio.clip, ratio.mix) == expected[label], (cell["block"], label)
+            seen.add(label)
+    assert seen == set(expected)
+    # the guard is needed: the recipe's default shaping is not the paper's
+    assert (default.temper, default.clip, default.mix) != (1.0, None, 0.0)
