@@ -2,6 +2,7 @@
 
     python recipes/weighting_study.py              # the full study (about an hour on 2 cores)
     python recipes/weighting_study.py --quick      # a smoke version (seconds; CI runs it)
+    python recipes/weighting_study.py --blocks regimes   # one block (weighting, regimes, mountain_car)
 
 Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
 one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
@@ -63,19 +64,28 @@ MOUNTAIN_CAR = {
 }
 
 
-def build_cells(quick: bool) -> list[dict]:
+BLOCKS = ("weighting", "regimes", "mountain_car")
+
+
+def build_cells(quick: bool, blocks=BLOCKS) -> list[dict]:
+    """The study's cells, block by block (``blocks``: any of :data:`BLOCKS`; ``quick`` runs the weighting block's
+    smoke version only)."""
+    unknown = sorted(set(blocks) - set(BLOCKS))
+    if unknown:
+        raise ValueError(f"weighting_study blocks: unknown {unknown}; choose from {list(BLOCKS)}")
     cells = []
     envs = ["lqr_exp1"] if quick else ["lqr_exp1", "lqr_exp2", "lqr_exp3"]
     methods = ["unweighted", "learned ŵ (paper)", "learned ½ + ½ŵ"] if quick else list(WEIGHTING)
-    for env in envs:
+    for env in envs if "weighting" in blocks else ():
         for method in methods if (quick or env == "lqr_exp1") else OTHER_ENV_METHODS:
             cells.append({"block": "weighting", "env": env, "setting": "paper data", "method": method,
                           "overrides": [f"env={env}", *WEIGHTING[method]]})
-    if not quick:
+    if not quick and "regimes" in blocks:
         for regime, extra in REGIMES.items():
             for method in REGIME_METHODS:
                 cells.append({"block": "regimes", "env": "lqr_exp1", "setting": regime, "method": method,
                               "overrides": ["env=lqr_exp1", *extra, *WEIGHTING[method]]})
+    if not quick and "mountain_car" in blocks:
         for method, extra in MOUNTAIN_CAR.items():
             cells.append({"block": "mountain_car", "env": "mountain_car", "setting": "paper data", "method": method,
                           "overrides": ["env=mountain_car", "eval.train_episodes=5", "eval.episodes=100", *extra]})
@@ -161,12 +171,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, 3 methods, 1 seed")
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), choices=BLOCKS, help="the blocks to run")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/weighting_study")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
-    cells = build_cells(args.quick)
+    cells = build_cells(args.quick, args.blocks)
     seeds = range(1 if args.quick else args.seeds)
     from torchrl_wbrm.training.runs import QUICK_BUDGET, WEIGHTING_BUDGET, run_cells
 

@@ -236,3 +236,15 @@ def test_weighting_study_levels_set_the_shaping_their_labels_name():
     assert seen == set(expected)
     # the guard is needed: the recipe's default shaping is not the paper's
     assert (default.temper, default.clip, default.mix) != (1.0, None, 0.0)
+
+
+def test_weighting_study_runs_the_blocks_asked_for():
+    import weighting_study
+
+    regimes = weighting_study.build_cells(quick=False, blocks=["regimes"])
+    assert regimes and {c["block"] for c in regimes} == {"regimes"}
+    assert len(regimes) == len(weighting_study.REGIMES) * len(weighting_study.REGIME_METHODS)
+    every = weighting_study.build_cells(quick=False)
+    assert {c["block"] for c in every} == set(weighting_study.BLOCKS)
+    with pytest.raises(ValueError, match="unknown \\['regime'\\]"):
+        weighting_study.build_cells(quick=False, blocks=["regime"])
