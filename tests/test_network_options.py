@@ -152,12 +152,12 @@ def _trainer(tmp_path, *overrides, resume=False):
 
 def test_recipe_defaults_smooth_q_and_the_options_reach_the_networks(tmp_path, single_thread):
     default = _trainer(tmp_path / "default", "q.steps=4")
-    assert _activations(default.q_loss.value_network) == {nn.SiLU}  # the recipe's Q is smooth
+    assert _activations(default.q_loss.value_network) == {nn.GELU}  # the recipe's Q is smooth
     assert _activations(default.actor) == {nn.ReLU}
     assert _activations(default.ratio_network) == {nn.ReLU}
-    t = _trainer(tmp_path / "options", "q.steps=4", "q.activation=GELU", "q.actor_activation=Tanh",
+    t = _trainer(tmp_path / "options", "q.steps=4", "q.activation=SiLU", "q.actor_activation=Tanh",
                  "ratio.activation=ELU", "q.layer_norm=true", "q.ensemble_size=2", "q.normalise_observations=true")
-    assert _activations(t.q_loss.value_network) == {nn.GELU}
+    assert _activations(t.q_loss.value_network) == {nn.SiLU}
     assert _activations(t.actor) == {nn.Tanh}
     assert _activations(t.ratio_network) == {nn.ELU}
     assert any(isinstance(m, nn.LayerNorm) for m in t.q_loss.value_network.modules())
