@@ -101,9 +101,11 @@ FIVE_SEED_LEVELS = {("weighting", "unweighted")}
 #: ensemble; the rest in block order
 PRIORITY = [("weighting", "unweighted"), ("activation", "ReLU"), ("lr schedule", "constant"),
             ("step budget", "6000"), ("ensemble", "two, mean")]
-MOUNTAIN_CAR = {
+MOUNTAIN_CAR = {  # env=mountain_car's defaults keep SiLU Q (configs/env_defaults/mountain_car.yaml); GELU beside it
     "wbrm (the recipe's default)": [],
     "td3bc, same budget": ["algo=td3bc"],
+    "wbrm, GELU Q": ["q.activation=GELU"],
+    "td3bc, same budget, GELU Q": ["algo=td3bc", "q.activation=GELU"],
 }
 #: The recipe as it is now (no overrides: GELU Q since this round) and its unweighted comparator, 5 seeds on every
 #: system: the figures the goals are judged on.
