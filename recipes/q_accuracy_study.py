@@ -229,12 +229,14 @@ def select(records: list[dict], block: str) -> tuple[str, dict, dict]:
 
 
 def selection_verdict(chosen: str, intervals: dict) -> str:
-    """The selection rule in words: a level replaces the default only when its paired interval lies below 0."""
+    """The selection rule in words: a level is a candidate to replace the default only when its paired interval lies
+    below 0 (:func:`adopt` takes one candidate a round)."""
     if _is_default(chosen):
         return f"{chosen}: keep"
     mean, half = intervals.get(chosen, (float("nan"), float("nan")))
     beyond = mean + half < 0
-    return f"{chosen}: {'adopt' if beyond else 'keep the default'} (log-ratio {mean:+.3f} ± {half:.3f}" + (
+    verdict = "below the default beyond the noise" if beyond else "keep the default"
+    return f"{chosen}: {verdict} (log-ratio {mean:+.3f} ± {half:.3f}" + (
         ")" if beyond else ", within the noise)")
 
 
