@@ -3,6 +3,7 @@
     python benchmarks/bench_recipe.py                       # the default recipe, instrumented, in this process
     python benchmarks/bench_recipe.py q.steps=500           # any recipe override
     python benchmarks/bench_recipe.py --wall                # also time the real command as a subprocess
+    python benchmarks/bench_recipe.py --flush-denormal q.steps=10   # stage 1 with denormal floats flushed to zero
     python benchmarks/bench_recipe.py --vs-old ratio.steps=500 q.steps=1000   # with every speed shortcut off, too
 
 ``--vs-old`` runs the instrumented recipe alternately with every speed shortcut off (``benchmarks/_old_paths.py``:
@@ -129,8 +130,14 @@ def main(argv=None):
     parser.add_argument("--wall", action="store_true", help="also time `python recipes/wbrm_offline.py` itself")
     parser.add_argument("--vs-old", action="store_true", help="also run with every speed shortcut off (interleaved)")
     parser.add_argument("--rounds", type=int, default=1)
+    parser.add_argument("--flush-denormal", action="store_true",
+                        help="torch.set_flush_denormal(True) first (is a part slowed by denormal floats?)")
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args(argv)
+    if args.flush_denormal:
+        import torch
+
+        torch.set_flush_denormal(True)
     if args.vs_old:
         return vs_old(args.overrides, args.rounds)
     imports = import_seconds()

@@ -113,6 +113,8 @@ ADOPTED = {
     "the recipe's default now": [],
     "unweighted": ["ratio.source=none"],
 }
+#: the blocks besides :data:`BLOCKS` that ``--blocks`` takes
+OTHER_BLOCKS = ("adopted", "mountain_car", DEFAULT)
 
 
 def _is_default(level: str) -> bool:
@@ -391,7 +393,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, ReLU vs SiLU, 1 seed")
     parser.add_argument("--blocks", nargs="+", default=[*BLOCKS, "adopted"],
-                        help=f"any of {[*BLOCKS, 'adopted', 'mountain_car', DEFAULT]} ({DEFAULT!r} alone: the round's "
+                        help=f"any of {[*BLOCKS, *OTHER_BLOCKS]} ({DEFAULT!r} alone: the round's "
                              "base only; 'adopted': the recipe as it is now and its unweighted comparator, 5 seeds)")
     parser.add_argument("--systems", nargs="+", default=SYSTEMS, help="systems of the defaults, ReLU and unweighted")
     parser.add_argument("--factor-systems", nargs="+", default=SYSTEMS,
@@ -400,9 +402,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/q_accuracy_study")
     args = parser.parse_args()
-    unknown = [b for b in args.blocks if b not in BLOCKS and b not in ("mountain_car", "adopted", DEFAULT)]
+    unknown = [b for b in args.blocks if b not in BLOCKS and b not in OTHER_BLOCKS]
     if unknown:
-        parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, 'adopted', 'mountain_car', DEFAULT]}")
+        parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, *OTHER_BLOCKS]}")
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
     from torchrl_wbrm.training.runs import Q_ACCURACY_BUDGET, QUICK_BUDGET, run_cells

@@ -248,3 +248,33 @@ def test_weighting_study_runs_the_blocks_asked_for():
     assert {c["block"] for c in every} == set(weighting_study.BLOCKS)
     with pytest.raises(ValueError, match="unknown \\['regime'\\]"):
         weighting_study.build_cells(quick=False, blocks=["regime"])
+
+
+# ---------------------------------------------------------------------- q_accuracy_study: one change a round
+def _q_record(block, method, env, seed, residual, wall=30.0):
+    return {"study": {"block": block, "env": env, "setting": block, "method": method}, "seed": seed,
+            "final": {"held_out_bellman_residual": residual}, "wall_seconds": wall}
+
+
+def _q_records(levels):
+    """The base on two systems and seeds 0-2 (residual 1.0), and each ``(block, level, factor, wall)`` with its
+    residual ``factor`` × the base's, jittered by ±0.1% so that its paired interval is narrow but not zero."""
+    records = [_q_record("default", "default", env, seed, 1.0) for env in ("lqr_exp1", "lqr_exp2") for seed in range(3)]
+    for block, level, factor, wall in levels:
+        for env in ("lqr_exp1", "lqr_exp2"):
+            for seed, jitter in zip(range(3), (0.999, 1.0, 1.001)):
+                records.append(_q_record(block, level, env, seed, factor * jitter, wall))
+    return records
+
+
+def test_q_accuracy_adopt_takes_one_level_and_breaks_ties_by_run_time():
+    import q_accuracy_study as q
+
+    # two candidates whose intervals overlap: the cheaper one, although its score is higher
+    chosen = q.adopt(_q_records([("activation", "GELU", 0.985, 30.0), ("step budget", "6000", 0.984, 60.0)]))
+    assert chosen[:2] == ("activation", "GELU") and len(chosen[2]) == 2
+    # a candidate lower beyond the other's interval wins whatever it costs
+    chosen = q.adopt(_q_records([("activation", "GELU", 0.985, 30.0), ("step budget", "6000", 0.90, 60.0)]))
+    assert chosen[:2] == ("step budget", "6000")
+    # a level above the base is no candidate; no candidate, no change
+    assert q.adopt(_q_records([("activation", "ReLU", 1.05, 30.0)])) is None
