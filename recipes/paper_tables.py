@@ -96,7 +96,7 @@ def tables(out: Path) -> str:
     def cell(algo, env, path, digits=3):
         return ci_cell(by.get((algo, env), []), path, digits)
 
-    parts = []
+    parts = [headline_table(records)]
     if lqr_envs:
         optimum = {}
         for e in lqr_envs:  # the exact optimum is the env's: the same in every run of it (a diverged run may lack it)
@@ -140,6 +140,42 @@ def tables(out: Path) -> str:
     total = f" The whole grid took {json.loads(timing.read_text())['wall_seconds'] / 60:.1f} min." if timing.is_file() else ""
     parts.append(f"Seeds: {seeds}. Paper figures are single runs without error bars.{total}")
     return "\n\n".join(parts)
+
+
+def headline_table(records: list[dict]) -> str:
+    """The headline: one row per algorithm, one column per env, the LQR envs' paired regret and the other envs'
+    return, ``mean ± 95% CI`` over seeds, the best mean of each column in bold; the first row is the exact optimum
+    (regret 0 at the optimal return the LQR Riccati solution gives; no exact optimum is known for MountainCar)."""
+    import numpy as np
+
+    from torchrl_wbrm.training.reporting import ci_cell
+
+    by = {}
+    for r in records:
+        by.setdefault((_algo(r), r["env"]), []).append(r)
+    algos = sorted({a for a, _ in by})
+    lqr_envs, other_envs = split_envs(records)
+    columns = [(e, "regret", 4, min) for e in lqr_envs] + [(e, "return", 2, max) for e in other_envs]
+    lines = ["| algorithm | " + " | ".join(f"{env} {key}" for env, key, _, _ in columns) + " |",
+             "|" + "---|" * (len(columns) + 1)]
+    optimum, best = [], {}
+    for env, key, _, pick in columns:
+        found = [r["final"]["optimal_return_exact"] for r in records
+                 if r["env"] == env and "optimal_return_exact" in (r.get("final") or {})]
+        optimum.append(f"0 (return {found[0]:.3f})" if key == "regret" and found else "– (none known)")
+        means = {}
+        for a in algos:
+            values = [v for r in by.get((a, env), []) if isinstance(v := (r.get("final") or {}).get(key), (int, float))]
+            if values:
+                means[a] = float(np.mean(values))
+        best[env] = pick(means, key=means.get) if means else None
+    lines.append("| exact optimum | " + " | ".join(optimum) + " |")
+    for a in algos:
+        cells = [ci_cell(by.get((a, env), []), f"final.{key}", digits) for env, key, digits, _ in columns]
+        cells = [f"**{c}**" if best[env] == a else c for c, (env, *_) in zip(cells, columns)]
+        lines.append(f"| {a} | " + " | ".join(cells) + " |")
+    return ("### Headline: every method on every environment (LQR: paired regret, lower is better; "
+            "otherwise: return, higher is better)\n\n" + "\n".join(lines))
 
 
 def learning_curves(records: list[dict]) -> dict[tuple[str, str], dict]:

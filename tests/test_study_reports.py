@@ -193,6 +193,24 @@ def test_paper_tables_cover_every_lqr_env_that_ran(tmp_path):
     assert (tmp_path / "paper_tables.png").is_file()
 
 
+def test_the_headline_puts_every_method_on_every_env_beside_the_exact_optimum(tmp_path):
+    """The headline (the first table of tables.md): LQR regret and MountainCar return per algorithm, the exact
+    optimum's row first, the best mean of each column in bold (lowest regret, highest return)."""
+    for seed, (w, t) in enumerate([(0.02, 0.05), (0.04, 0.03)]):
+        _run(tmp_path, "lqr_exp1", "wbrm", seed, {2000: w}, optimum=85.435)
+        _run(tmp_path, "lqr_exp1", "td3bc", seed, {2000: t}, optimum=85.435)
+    _run(tmp_path, "mountain_car", "wbrm", 0, {2000: 90.0}, lqr=False)
+    _run(tmp_path, "mountain_car", "td3bc", 0, {2000: 95.0}, lqr=False)
+    text = paper_tables.tables(tmp_path)
+    assert text.startswith("### Headline")
+    head = text.split("\n\n")[1].splitlines()
+    assert head[0] == "| algorithm | lqr_exp1 regret | mountain_car return |"
+    assert head[2] == "| exact optimum | 0 (return 85.435) | – (none known) |"
+    # wbrm's mean regret 0.03 < td3bc's 0.04: bold; td3bc's return 95 > 90: bold
+    assert head[3] == "| td3bc | 0.0400 ± 0.1271 | **95.00** |"
+    assert head[4] == "| wbrm | **0.0300 ± 0.1271** | 90.00 |"
+
+
 def test_an_lqr_env_is_known_by_its_config_not_its_name():
     assert paper_tables.is_lqr({"env": "my_system", "config": {"env": {"kind": "lqr"}}})
     assert not paper_tables.is_lqr({"env": "lqr_like_name", "config": {"env": {"kind": "mountain_car"}}})
