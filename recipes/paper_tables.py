@@ -40,10 +40,7 @@ PAPER_TABLE_3 = {"dqn": 94.67, "ddpg": 95.29, "mabo": 94.78, "wbrm": 95.51}
 LABELS = ("env", "method")
 #: the paper's LQR experiments 1-3, an LQR system not in the paper, and MountainCar
 DEFAULT_ENVS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "mountain_car"]
-#: "budget and convergence": a regret curve is flat when its last evaluation is within this factor of the previous one
-FLAT_REGRET_FACTOR = 1.1
-#: ... and a return curve when its last evaluation is within this many return units of the previous one
-FLAT_RETURN_DELTA = 1.0
+
 
 
 def available_algos() -> list[str]:
@@ -186,7 +183,8 @@ def learning_curves(records: list[dict]) -> dict[tuple[str, str], dict]:
     that step with its 95% Student-t interval (:func:`torchrl_wbrm.evaluation.mean_ci`; none for one seed). Its
     ``budget`` is the runs' ``q.steps`` (from their saved config, sorted; one value unless the seeds differ). Runs
     without a history (or not finished) are left out. Returns ``{(env, algo): {"metric", "steps", "mean", "low",
-    "high", "n", "budget"}}``.
+    "high", "n", "budget", "runs", "run_cis"}}``: ``runs`` is each seed's ``{step: figure}``, ``run_cis`` its
+    evaluations' own 95% half-widths over episodes (``<figure>_ci`` in the history), for :func:`curve_verdict`.
     """
     import math
 
@@ -201,40 +199,65 @@ def learning_curves(records: list[dict]) -> dict[tuple[str, str], dict]:
         if not path.is_file():
             continue
         metric = "regret" if is_lqr(r) else "return"
-        points = {int(h["step"]): float(h[metric]) for h in json.loads(path.read_text())
-                  if h.get("stage") == "q" and isinstance(h.get(metric), (int, float))
-                  and math.isfinite(h[metric])}
+        points, cis = {}, {}
+        for h in json.loads(path.read_text()):
+            if h.get("stage") == "q" and isinstance(h.get(metric), (int, float)) and math.isfinite(h[metric]):
+                points[int(h["step"])] = float(h[metric])
+                if isinstance(h.get(f"{metric}_ci"), (int, float)) and math.isfinite(h[f"{metric}_ci"]):
+                    cis[int(h["step"])] = float(h[f"{metric}_ci"])
         if points:
-            runs.setdefault((r["env"], _algo(r)), []).append((r, points))
+            runs.setdefault((r["env"], _algo(r)), []).append((r, points, cis))
     curves = {}
     for key, group in sorted(runs.items()):
-        steps = sorted({s for _, points in group for s in points})
+        steps = sorted({s for _, points, _ in group for s in points})
         mean, low, high, n = [], [], [], []
         for s in steps:
-            ci = mean_ci([points[s] for _, points in group if s in points])
+            ci = mean_ci([points[s] for _, points, _ in group if s in points])
             mean.append(ci.mean)
             low.append(ci.low if ci.n > 1 else ci.mean)
             high.append(ci.high if ci.n > 1 else ci.mean)
             n.append(ci.n)
-        budget = sorted({int(r["config"]["q"]["steps"]) for r, _ in group
+        budget = sorted({int(r["config"]["q"]["steps"]) for r, _, _ in group
                          if isinstance(((r.get("config") or {}).get("q") or {}).get("steps"), int)})
         curves[key] = {"metric": "regret" if is_lqr(group[0][0]) else "return", "steps": steps, "mean": mean,
-                       "low": low, "high": high, "n": n, "budget": budget}
+                       "low": low, "high": high, "n": n, "budget": budget,
+                       "runs": [points for _, points, _ in group], "run_cis": [cis for _, _, cis in group]}
     return curves
 
 
+def change_interval(curve: dict, step: int, reference: int) -> tuple[float, float, float] | None:
+    """The change of the figure from evaluation step ``reference`` to ``step``: ``(mean, low, high)`` of the
+    per-seed differences, a paired 95% Student-t interval over the seeds evaluated at both. With one seed the
+    interval is that run's two evaluations' own intervals (over episodes) combined, ±√(ci₁² + ci₂²) (±0 when the
+    history has none). None when no seed was evaluated at both."""
+    from torchrl_wbrm.evaluation import mean_ci
+
+    pairs = [(points[step] - points[reference], cis.get(step, 0.0), cis.get(reference, 0.0))
+             for points, cis in zip(curve["runs"], curve["run_cis"]) if step in points and reference in points]
+    if not pairs:
+        return None
+    if len(pairs) == 1:
+        d, c1, c2 = pairs[0]
+        half = (c1 ** 2 + c2 ** 2) ** 0.5
+        return d, d - half, d + half
+    ci = mean_ci([d for d, _, _ in pairs])
+    return ci.mean, ci.low, ci.high
+
+
 def curve_verdict(curve: dict) -> dict:
-    """Whether an (env, algorithm)'s mean curve had flattened at its last evaluation.
+    """Whether an (env, algorithm)'s curve had stopped changing at its last evaluation, beyond the noise.
 
     ``last`` is the seed-mean at the last evaluation step, ``previous`` at the one before, ``best`` the best
-    (lowest regret, highest return) of the evaluations before the last, at step ``best_step``. Regret is compared by
-    ratio (``vs_previous`` = last / previous, ``vs_best`` = last / best; n/a when the denominator is not positive),
-    return by difference (last − previous, last − best). The verdict: ``"past its best"`` when the last is worse than
-    the best earlier one by more than the tolerance (regret: a factor :data:`FLAT_REGRET_FACTOR`; return:
-    :data:`FLAT_RETURN_DELTA` return units), else ``"still improving"`` when it is better than the previous one by
-    more than the tolerance, else ``"flat"``; ``"one evaluation"`` for a curve of one point. The last evaluation
-    is the final one, on ``eval.episodes`` episodes; the earlier ones use ``eval.train_episodes`` (MountainCar in
-    the tables: 100 against 5), so a small change at the end can be evaluation noise.
+    (lowest regret, highest return) seed-mean of the evaluations before the last, at step ``best_step``. The
+    changes ``vs_previous`` (last − previous) and ``vs_best`` (last − best) are :func:`change_interval`'s
+    ``(mean, low, high)``: paired over seeds, so they hold both the seed-to-seed spread and each evaluation's noise
+    over its episodes. The verdict: ``"past its best"`` when the last is worse than the best earlier one beyond its
+    interval (regret: the interval above 0; return: below), else ``"still improving"`` when it is better than the
+    previous one beyond its interval, else ``"flat"`` (no change the seeds can tell from noise); ``"one evaluation"``
+    for a curve of one point. The best earlier step is picked from noisy means, so "past its best" leans towards
+    being said. The last evaluation is the final one, on ``eval.episodes`` episodes; the earlier ones use
+    ``eval.train_episodes`` (in the tables, LQR 200 against 1,000 and MountainCar 5 against 100): their wider
+    intervals enter the comparison.
     """
     steps, mean, regret = curve["steps"], curve["mean"], curve["metric"] == "regret"
     out = {"last": mean[-1], "last_step": steps[-1], "previous": None, "best": None, "best_step": None,
@@ -242,27 +265,19 @@ def curve_verdict(curve: dict) -> dict:
     if len(steps) < 2:
         return out
     earlier = mean[:-1]
-    best_i = min(range(len(earlier)), key=earlier.__getitem__) if regret else max(range(len(earlier)), key=earlier.__getitem__)
+    pick = min if regret else max
+    best_i = pick(range(len(earlier)), key=earlier.__getitem__)
     out.update(previous=earlier[-1], best=earlier[best_i], best_step=steps[best_i])
-    if regret:
-        def compare(x, y):
-            return x / y if y > 0 else None
+    out["vs_previous"] = change_interval(curve, steps[-1], steps[-2])
+    out["vs_best"] = change_interval(curve, steps[-1], steps[best_i])
+    sign = 1.0 if regret else -1.0  # a positive sign * change is worse
 
-        def worse(c):
-            return c is not None and c > FLAT_REGRET_FACTOR
+    def worse(c):
+        return min(sign * c[1], sign * c[2]) > 0
 
-        def better(c):
-            return c is not None and c < 1 / FLAT_REGRET_FACTOR
-    else:
-        def compare(x, y):
-            return x - y
+    def better(c):
+        return max(sign * c[1], sign * c[2]) < 0
 
-        def worse(c):
-            return c < -FLAT_RETURN_DELTA
-
-        def better(c):
-            return c > FLAT_RETURN_DELTA
-    out["vs_previous"], out["vs_best"] = compare(mean[-1], earlier[-1]), compare(mean[-1], earlier[best_i])
     if out["vs_previous"] is None or out["vs_best"] is None:
         out["verdict"] = "n/a"
     elif worse(out["vs_best"]):
@@ -277,17 +292,19 @@ def curve_verdict(curve: dict) -> dict:
 def convergence_table(curves: dict[tuple[str, str], dict]) -> str:
     """"Budget and convergence": one row per (env, algorithm): its budget (``q.steps``), the number of evaluations,
     the seed-mean figure at the previous and last evaluations and the best earlier one, and
-    :func:`curve_verdict`'s comparison (regret: ``×`` the ratio last / previous and last / best; return: the
-    difference)."""
+    :func:`curve_verdict`'s changes (last − previous, last − best, each with its paired 95% interval) and verdict."""
 
     def fmt(v, regret):
         return "n/a" if v is None else (f"{v:.4f}" if regret else f"{v:.2f}")
 
-    def change(v, regret):
-        return "n/a" if v is None else (f"×{v:.2f}" if regret else f"{v:+.2f}")
+    def change(c, regret):
+        if c is None:
+            return "n/a"
+        d = 4 if regret else 2
+        return f"{c[0]:+.{d}f} [{c[1]:+.{d}f}, {c[2]:+.{d}f}]"
 
     lines = ["| env | algorithm | figure | budget (q.steps) | evaluations | previous | last | best earlier (step) "
-             "| last vs previous | last vs best earlier | verdict |", "|" + "---|" * 11]
+             "| last − previous [95% CI] | last − best earlier [95% CI] | verdict |", "|" + "---|" * 11]
     for (env, algo), curve in sorted(curves.items()):
         v, regret = curve_verdict(curve), curve["metric"] == "regret"
         budget = "/".join(map(str, curve["budget"])) or "?"
@@ -295,10 +312,11 @@ def convergence_table(curves: dict[tuple[str, str], dict]) -> str:
         lines.append(f"| {env} | {algo} | {curve['metric']} | {budget} | {len(curve['steps'])} "
                      f"| {fmt(v['previous'], regret)} | {fmt(v['last'], regret)} | {best} "
                      f"| {change(v['vs_previous'], regret)} | {change(v['vs_best'], regret)} | {v['verdict']} |")
-    lines.append(f"\nSeed means at each evaluation step (the last is at the budget, on the final evaluation's episodes). "
-                 f"Regret is compared by ratio, return by difference; flat: within ×{FLAT_REGRET_FACTOR} (regret) or "
-                 f"±{FLAT_RETURN_DELTA} (return) of the previous evaluation; past its best: worse than the best earlier "
-                 f"evaluation by more than that. See learning_curves.png.")
+    lines.append("\nSeed means at each evaluation step (the last is at the budget, on the final evaluation's episodes; "
+                 "the earlier ones on eval.train_episodes). Each change is paired over seeds, with its 95% Student-t "
+                 "interval (one seed: the two evaluations' own intervals combined). Flat: the change from the previous "
+                 "evaluation is within its interval; still improving: better beyond it; past its best: worse than the "
+                 "best earlier evaluation beyond its interval. See learning_curves.png.")
     return "\n".join(lines)
 
 

@@ -124,26 +124,48 @@ def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
     assert curves[("mountain_car", "wbrm")]["budget"] == [3000]
 
     verdicts = {k: paper_tables.curve_verdict(c) for k, c in curves.items()}
-    assert verdicts[("lqr_exp1", "wbrm")]["verdict"] == "flat"
-    assert verdicts[("lqr_exp1", "wbrm")]["vs_previous"] == pytest.approx(1.0)
-    assert verdicts[("lqr_exp1", "td3bc")]["verdict"] == "still improving"
-    assert verdicts[("lqr_exp1", "td3bc")]["vs_previous"] == pytest.approx(0.5)
+    # wbrm: the seeds' changes -0.005 and +0.005 average 0, a paired interval over the two seeds covers it: flat
+    wbrm_v = verdicts[("lqr_exp1", "wbrm")]
+    assert wbrm_v["verdict"] == "flat" and wbrm_v["vs_previous"][0] == pytest.approx(0.0, abs=1e-12)
+    assert wbrm_v["vs_previous"][1] == pytest.approx(-12.706 * 0.005, rel=1e-3)  # t(1) x the se of (-0.005, 0.005)
+    # one seed: the two evaluations' own intervals (0.01 each) combined, ±0.01·√2
+    td3bc = verdicts[("lqr_exp1", "td3bc")]
+    assert td3bc["verdict"] == "still improving"
+    assert td3bc["vs_previous"] == pytest.approx((-0.1, -0.1 - 0.01 * 2 ** 0.5, -0.1 + 0.01 * 2 ** 0.5))
     fqi = verdicts[("lqr_exp1", "fqi")]
-    assert fqi["verdict"] == "past its best" and fqi["best_step"] == 1000 and fqi["vs_best"] == pytest.approx(4.0)
+    assert fqi["verdict"] == "past its best" and fqi["best_step"] == 1000 and fqi["vs_best"][0] == pytest.approx(0.15)
     iql = verdicts[("lqr_exp1", "iql")]
-    assert iql["verdict"] == "past its best" and iql["vs_previous"] == pytest.approx(1.05) and iql["best_step"] == 500
+    assert iql["verdict"] == "past its best" and iql["vs_previous"][0] == pytest.approx(0.02) and iql["best_step"] == 500
     car = verdicts[("mountain_car", "wbrm")]
-    assert car["verdict"] == "still improving" and car["vs_previous"] == pytest.approx(3.0)
+    assert car["verdict"] == "still improving" and car["vs_previous"][0] == pytest.approx(3.0)
     assert car["best"] == pytest.approx(90.0)
 
     text = paper_tables.tables(tmp_path)
     assert "### Budget and convergence" in text
-    assert "| lqr_exp1 | fqi | regret | 2000 | 4 | 0.1000 | 0.2000 | 0.0500 (1000) | ×2.00 | ×4.00 | past its best |" in text
-    assert "| lqr_exp1 | wbrm | regret | 2000 | 4 | 0.2000 | 0.2000 | 0.2000 (1500) | ×1.00 | ×1.00 | flat |" in text
-    assert "| mountain_car | wbrm | return | 3000 | 3 | 90.00 | 93.00 | 90.00 (2000) | +3.00 | +3.00 | still improving |" in text
+    assert ("| lqr_exp1 | fqi | regret | 2000 | 4 | 0.1000 | 0.2000 | 0.0500 (1000) | +0.1000 [+0.0859, +0.1141] "
+            "| +0.1500 [+0.1359, +0.1641] | past its best |") in text
+    assert ("| lqr_exp1 | wbrm | regret | 2000 | 4 | 0.2000 | 0.2000 | 0.2000 (1500) | +0.0000 [-0.0635, +0.0635] "
+            "| +0.0000 [-0.0635, +0.0635] | flat |") in text
+    assert ("| mountain_car | wbrm | return | 3000 | 3 | 90.00 | 93.00 | 90.00 (2000) | +3.00 [+2.99, +3.01] "
+            "| +3.00 [+2.99, +3.01] | still improving |") in text
 
     path = paper_tables.plot_learning_curves(tmp_path)
     assert path == tmp_path / "learning_curves.png" and path.stat().st_size > 10_000
+
+
+def test_a_change_within_the_evaluation_noise_is_flat_not_past_its_best(tmp_path):
+    """Regret 0.002 at step 1500 and 0.005 at 2000 is ×2.5, but each evaluation's own interval is ±0.01: the
+    verdict is flat. The same change with ±0.001 intervals is past its best."""
+    _run(tmp_path / "noisy", "lqr_exp1", "brm", 0, {1500: 0.002, 2000: 0.005})
+    _run(tmp_path / "sharp", "lqr_exp1", "brm", 0, {1500: 0.002, 2000: 0.005})
+    history = tmp_path / "sharp" / "lqr_exp1" / "brm" / "seed0" / "history.json"
+    history.write_text(history.read_text().replace('"regret_ci": 0.01', '"regret_ci": 0.001'))
+    from torchrl_wbrm.training.reporting import load_results
+
+    noisy = paper_tables.learning_curves(load_results(tmp_path / "noisy"))[("lqr_exp1", "brm")]
+    sharp = paper_tables.learning_curves(load_results(tmp_path / "sharp"))[("lqr_exp1", "brm")]
+    assert paper_tables.curve_verdict(noisy)["verdict"] == "flat"
+    assert paper_tables.curve_verdict(sharp)["verdict"] == "past its best"
 
 
 def test_the_learning_curves_figure_draws_a_panel_per_env_and_a_line_per_budget(tmp_path, monkeypatch):
