@@ -1,6 +1,7 @@
 """The paper's Tables 2 and 3, regenerated on identical data with seeds and confidence intervals.
 
-    python recipes/paper_tables.py                    # all algorithms x {LQR exp1-3, LQR nondiag, MountainCar} x 5 seeds
+    python recipes/paper_tables.py                    # all algorithms x {LQR exp1-3, LQR nondiag, MountainCar} x 5 seeds,
+                                                      # then the budget check on LQR exp1
     python recipes/paper_tables.py --quick            # a smoke version (CI)
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
     python recipes/paper_tables.py --report-only      # rebuild tables.md and the figures from finished runs
@@ -11,6 +12,12 @@ coupled dynamics and control: ``configs/env/lqr_nondiag.yaml``) and MountainCar.
 every 500 steps for the learning curves, CQL with 4 random actions per state; ``--quick``: ``TABLE_QUICK_BUDGET``).
 Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's (``torchrl_wbrm.algos.ALGOS``).
 
+Then the budget check (``--budget-envs``, default ``lqr_exp1``; ``--budget-steps``, default 1,000 and 4,000): those
+envs' cells again at other step budgets, each its own runs on the same data and seeds, into
+``<out>_budget_check/steps<N>``. Every optimiser's learning rate is annealed over ``q.steps``, so a curve inside one
+run always improves at its end; whether the table's budget suffices shows only against runs of a larger one
+(:func:`budget_table`, ``budget_check.png``).
+
 Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: local
 processes, or a Hydra launcher with ``--launcher``) into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the
 same data for a given seed, collected once into a ``data_cache``. Then it writes ``tables.md``:
@@ -18,7 +25,8 @@ Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and LQR env
 the paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
 mean(Q̂ − Q*) on behaviour and expert data (every LQR env that ran: an env is LQR when its runs' config says
 ``env.kind: lqr``), Table 3 (MountainCar: mean return over 100 episodes ± 95% CI), the cost, and "budget and
-convergence" (:func:`convergence_table`). ``paper_tables.png`` draws the final figures, ``learning_curves.png``
+convergence" (:func:`convergence_table`), the budget check (:func:`budget_table`) and the headline
+(:func:`headline_table`, first). ``paper_tables.png`` draws the final figures, ``learning_curves.png``
 (:func:`plot_learning_curves`) each algorithm's evaluations during training, from each run's ``history.json``.
 """
 from __future__ import annotations
@@ -43,6 +51,20 @@ DEFAULT_ENVS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "mountain_car
 
 
 
+#: the budget check: the grid's runs of these envs again at these step budgets (each evaluated once, at its end, on
+#: the same data and seeds), beside the grid's own runs at the table budget. A learning curve read inside one run
+#: cannot tell whether a budget suffices: every optimiser's learning rate is annealed to 0 over ``q.steps`` (cosine),
+#: so the last stretch of any budget improves; only runs of a larger budget can.
+BUDGET_CHECK_ENVS = ["lqr_exp1"]
+BUDGET_CHECK_STEPS = [1000, 4000]
+
+
+def budget_check_dir(out: Path) -> Path:
+    """Where the budget check's runs live: beside ``out`` (``<out>_budget_check/steps<N>/<env>/<algo>/seed<s>``), so
+    that the tables, which read every run under ``out``, do not mix budgets."""
+    return out.with_name(out.name + "_budget_check")
+
+
 def available_algos() -> list[str]:
     from torchrl_wbrm.algos import algo_names
 
@@ -61,6 +83,23 @@ def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool) -> li
                 f"env={env}", f"algo={algo}", "logger=none", "plots=false", "checkpoint_every=0",
                 f"data_cache={out / 'data_cache'}", *extra]})
     return cells
+
+
+def build_budget_cells(envs: list[str], algos: list[str], out: Path, quick: bool, steps: int) -> list[dict]:
+    """The grid's cells of ``envs`` at a budget of ``steps`` Q steps, evaluated once at the end; they read the grid's
+    ``data_cache``, so every budget of a seed trains on the same data."""
+    cells = build_cells(envs, algos, out, quick)
+    for cell in cells:
+        cell["overrides"] = [*cell["overrides"], f"q.steps={steps}", f"q.eval_every={steps}"]
+    return cells
+
+
+def _unfinished(cells: list[dict], seeds, out: Path) -> int:
+    """How many of the (cell, seed) runs under ``out`` have no ``results.json`` yet."""
+    from torchrl_wbrm.training.runs import cell_dir
+
+    return sum(not (cell_dir(out, cell, seed, labels=LABELS) / "results.json").is_file()
+               for cell in cells for seed in seeds)
 
 
 def _algo(record: dict) -> str:
@@ -132,11 +171,30 @@ def tables(out: Path) -> str:
     if curves:
         parts.append("### Budget and convergence: the last evaluation against the earlier ones\n\n"
                      + convergence_table(curves))
+    budget = table_budget(records)
+    check = budget_table(out, budget) if budget is not None else ""
+    if check:
+        parts.append("### Budget check: the final figure at other budgets, each its own runs\n\n" + check)
     seeds = sorted({r["seed"] for r in records})
     timing = out / "wall_seconds.json"
-    total = f" The whole grid took {json.loads(timing.read_text())['wall_seconds'] / 60:.1f} min." if timing.is_file() else ""
+    total = []
+    took = json.loads(timing.read_text()) if timing.is_file() else {}
+    if "wall_seconds" in took:
+        total.append(f"The whole grid took {took['wall_seconds'] / 60:.1f} min.")
+    if "budget_check_seconds" in took:
+        total.append(f"The budget check took {took['budget_check_seconds'] / 60:.1f} min more.")
+    total = " " + " ".join(total) if total else ""
     parts.append(f"Seeds: {seeds}. Paper figures are single runs without error bars.{total}")
     return "\n\n".join(parts)
+
+
+def table_budget(records: list[dict]) -> int | None:
+    """The grid's ``q.steps`` (the most common over its runs; None without configs)."""
+    from collections import Counter
+
+    steps = Counter(((r.get("config") or {}).get("q") or {}).get("steps") for r in records)
+    steps.pop(None, None)
+    return steps.most_common(1)[0][0] if steps else None
 
 
 def headline_table(records: list[dict]) -> str:
@@ -320,6 +378,135 @@ def convergence_table(curves: dict[tuple[str, str], dict]) -> str:
     return "\n".join(lines)
 
 
+def budget_curves(out: Path) -> dict[tuple[str, str], dict]:
+    """The budget check's finals: ``{(env, algo): {"metric", "runs": {steps: {seed: figure}}}}``, from the grid's runs
+    (their ``q.steps``) and the runs under :func:`budget_check_dir`, for the envs the check ran."""
+    from torchrl_wbrm.training.reporting import load_results, split_by_status
+
+    check = budget_check_dir(out)
+    if not check.is_dir() or not any(check.rglob("results.json")):
+        return {}
+    extra = split_by_status(load_results(check))[0]
+    envs = {r["env"] for r in extra}
+    curves: dict[tuple[str, str], dict] = {}
+    for r in extra + [r for r in split_by_status(load_results(out))[0] if r["env"] in envs]:
+        metric = "regret" if is_lqr(r) else "return"
+        value = (r.get("final") or {}).get(metric)
+        steps = ((r.get("config") or {}).get("q") or {}).get("steps")
+        if isinstance(value, (int, float)) and isinstance(steps, int):
+            curve = curves.setdefault((r["env"], _algo(r)), {"metric": metric, "runs": {}})
+            curve["runs"].setdefault(steps, {})[r["seed"]] = float(value)
+    return curves
+
+
+def budget_verdict(curve: dict, budget: int) -> dict:
+    """Whether ``budget`` sufficed: the final figure at the largest budget checked against the one at ``budget``,
+    paired over the seeds run at both (a 95% Student-t interval of the differences). ``"converged"`` unless the
+    larger budget is better beyond the interval (``"not converged"``); ``"worse with more steps"`` when it is worse
+    beyond it; ``"n/a"`` without a larger budget or with fewer than two paired seeds."""
+    from torchrl_wbrm.evaluation import mean_ci
+
+    out = {"budget": budget, "longest": None, "change": None, "verdict": "n/a"}
+    longer = [s for s in curve["runs"] if s > budget]
+    if budget not in curve["runs"] or not longer:
+        return out
+    longest = max(longer)
+    a, b = curve["runs"][budget], curve["runs"][longest]
+    diffs = [b[s] - a[s] for s in sorted(set(a) & set(b))]
+    out["longest"] = longest
+    if len(diffs) < 2:
+        return out
+    ci = mean_ci(diffs)
+    out["change"] = (ci.mean, ci.low, ci.high)
+    sign = 1.0 if curve["metric"] == "regret" else -1.0  # sign * change > 0: worse
+    if sign * ci.low > 0 and sign * ci.high > 0:
+        out["verdict"] = "worse with more steps"
+    elif sign * ci.low < 0 and sign * ci.high < 0:
+        out["verdict"] = "not converged"
+    else:
+        out["verdict"] = "converged"
+    return out
+
+
+def budget_table(out: Path, budget: int) -> str:
+    """"Budget check": per (env, algorithm) the final figure (mean ± 95% CI over seeds) at every budget run, the
+    change from ``budget`` (the table's) to the largest, paired over seeds, and :func:`budget_verdict`. Empty when
+    the check did not run."""
+    from torchrl_wbrm.evaluation import mean_ci
+
+    curves = budget_curves(out)
+    if not curves:
+        return ""
+    steps = sorted({s for c in curves.values() for s in c["runs"]})
+    lines = ["| env | algorithm | figure | " + " | ".join(f"{s} steps" + (" (table)" if s == budget else "")
+                                                      for s in steps)
+             + f" | largest − {budget} [95% CI] | verdict |", "|" + "---|" * (len(steps) + 5)]
+    for (env, algo), curve in sorted(curves.items()):
+        regret = curve["metric"] == "regret"
+        d = 4 if regret else 2
+        cells = []
+        for s in steps:
+            values = list(curve["runs"].get(s, {}).values())
+            if not values:
+                cells.append("–")
+            elif len(values) == 1:
+                cells.append(f"{values[0]:.{d}f}")
+            else:
+                ci = mean_ci(values)
+                cells.append(f"{ci.mean:.{d}f} ± {ci.half_width:.{d}f}")
+        v = budget_verdict(curve, budget)
+        change = "n/a" if v["change"] is None else "{:+.{d}f} [{:+.{d}f}, {:+.{d}f}]".format(*v["change"], d=d)
+        lines.append(f"| {env} | {algo} | {curve['metric']} | " + " | ".join(cells) + f" | {change} | {v['verdict']} |")
+    lines.append(f"\nEach budget is its own runs (the learning rate is annealed over each budget), evaluated at the end "
+                 f"on the same episodes; the {budget}-step column is the grid's runs. Converged: the largest budget is "
+                 f"not better than the table's beyond the paired 95% interval over seeds. See budget_check.png.")
+    return "\n".join(lines)
+
+
+def plot_budget_check(out: Path, budget: int) -> Path | None:
+    """``budget_check.png``: per env of the check, each algorithm's final figure against its budget (mean ± 95% CI
+    over seeds; log-log for regret), the table's budget a dashed line. None when the check did not run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.evaluation import mean_ci
+
+    curves = budget_curves(out)
+    if not curves:
+        return None
+    envs = sorted({e for e, _ in curves})
+    algos = sorted({a for _, a in curves})
+    colours = {a: plt.get_cmap("tab10" if len(algos) <= 10 else "tab20")(i) for i, a in enumerate(algos)}
+    fig, axes = plt.subplots(1, len(envs), figsize=(5.5 * len(envs), 4.0), squeeze=False)
+    for ax, env in zip(axes[0], envs):
+        regret = False
+        for algo in algos:
+            curve = curves.get((env, algo))
+            if curve is None:
+                continue
+            regret = curve["metric"] == "regret"
+            steps = sorted(curve["runs"])
+            cis = [mean_ci(list(curve["runs"][s].values())) for s in steps]
+            means = [c.mean for c in cis]
+            errs = [0.0 if c.n < 2 else c.half_width for c in cis]
+            ax.errorbar(steps, means, yerr=errs, marker="o", ms=4, capsize=3, color=colours[algo], label=algo)
+        ax.axvline(budget, color="grey", ls="--", lw=0.8)
+        ax.set_xscale("log")
+        if regret:
+            ax.set_yscale("log", nonpositive="clip")
+        ax.set_xlabel("q.steps (each budget its own runs)")
+        ax.set_title(f"{env}: final {'paired regret' if regret else 'return'}", fontsize=10)
+        ax.legend(fontsize=7, ncol=2, frameon=False)
+    fig.suptitle(f"budget check: mean ± 95% CI over seeds; dashed: the table's budget ({budget})", fontsize=10)
+    fig.tight_layout()
+    path = out / "budget_check.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot(out: Path) -> Path:
     """``paper_tables.png``: each LQR env's paired regret (log scale) and the other envs' return per algorithm,
     mean ± 95% CI."""
@@ -411,6 +598,10 @@ def main() -> None:
                              "(pip install -e '.[sweeps]')")
     parser.add_argument("--launcher-args", nargs="*", default=[],
                         help="launcher overrides, e.g. hydra.launcher.partition=cpu hydra.launcher.timeout_min=30")
+    parser.add_argument("--budget-envs", nargs="*", default=BUDGET_CHECK_ENVS,
+                        help="the envs of the budget check (none: skip it); only those also in --envs run")
+    parser.add_argument("--budget-steps", nargs="+", type=int, default=None,
+                        help=f"the budget check's q.steps (default {BUDGET_CHECK_STEPS}; --quick: 5 20)")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default="results/paper_tables")
     parser.add_argument("--report-only", action="store_true",
@@ -422,18 +613,36 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (torchrl_wbrm/algos/).")
     if not args.report_only:
+        from torchrl_wbrm.training.guards import write_json
         from torchrl_wbrm.training.runs import TABLE_BUDGET, TABLE_QUICK_BUDGET, run_cells
 
         os.environ.setdefault("MPLBACKEND", "Agg")
+        seeds = range(1 if args.quick else args.seeds)
+        budget = TABLE_QUICK_BUDGET if args.quick else TABLE_BUDGET
+        launch = dict(jobs=args.jobs, labels=LABELS, launcher=args.launcher, launcher_args=args.launcher_args)
+        timing_path = out / "wall_seconds.json"
+        timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}
+        cells = build_cells(args.envs, algos, out, args.quick)
+        todo = _unfinished(cells, seeds, out)
         start = time.perf_counter()
-        run_cells(build_cells(args.envs, algos, out, args.quick), range(1 if args.quick else args.seeds),
-                  TABLE_QUICK_BUDGET if args.quick else TABLE_BUDGET, out, jobs=args.jobs, labels=LABELS,
-                  launcher=args.launcher, launcher_args=args.launcher_args)
-        (out / "wall_seconds.json").write_text(json.dumps({"wall_seconds": time.perf_counter() - start,
-                                                           "envs": args.envs, "algos": algos, "seeds": args.seeds}))
+        run_cells(cells, seeds, budget, out, **launch)
+        if todo:  # a call that only finds finished runs keeps the time of the call that ran them
+            timing.update(wall_seconds=time.perf_counter() - start, envs=args.envs, algos=algos, seeds=args.seeds)
+        check_envs = [e for e in args.envs if e in (args.budget_envs or [])]
+        start, todo = time.perf_counter(), 0
+        for steps in (args.budget_steps or ([5, 20] if args.quick else BUDGET_CHECK_STEPS)) if check_envs else []:
+            cells, where = build_budget_cells(check_envs, algos, out, args.quick, steps), budget_check_dir(out) / f"steps{steps}"
+            todo += _unfinished(cells, seeds, where)
+            run_cells(cells, seeds, budget, where, **launch)
+        if todo:
+            timing.update(budget_check_seconds=time.perf_counter() - start, budget_envs=check_envs)
+        write_json(timing_path, timing)
+    from torchrl_wbrm.training.reporting import load_results
+
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
-    figures = [plot(out), plot_learning_curves(out)]
+    budget = table_budget(load_results(out))
+    figures = [plot(out), plot_learning_curves(out), plot_budget_check(out, budget) if budget is not None else None]
     print(text)
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 

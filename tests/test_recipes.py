@@ -168,6 +168,12 @@ def test_paper_tables_quick(tmp_path):
     # the learning curves: two Q evaluations per quick run (TABLE_QUICK_BUDGET), a row per (env, algorithm)
     assert (tmp_path / "learning_curves.png").is_file() and "### Budget and convergence" in tables
     assert "| lqr_exp1 | td3bc | regret | 10 | 2 |" in tables and "| mountain_car | wbrm | return | 10 | 2 |" in tables
+    # the budget check: lqr_exp1 again at 5 and 20 steps, beside the grid (its runs not in the grid's tables)
+    check = tmp_path.with_name(tmp_path.name + "_budget_check")
+    assert sorted(p.name for p in check.iterdir()) == ["steps20", "steps5"]
+    assert "### Budget check" in tables and "| 5 steps | 10 steps (table) | 20 steps |" in tables
+    assert "| lqr_exp1 | wbrm | regret |" in tables.split("### Budget check")[1]
+    assert "mountain_car" not in tables.split("### Budget check")[1].split("Seeds:")[0]
 
 
 def test_ablations_quick(tmp_path):

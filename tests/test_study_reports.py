@@ -168,6 +168,47 @@ def test_a_change_within_the_evaluation_noise_is_flat_not_past_its_best(tmp_path
     assert paper_tables.curve_verdict(sharp)["verdict"] == "past its best"
 
 
+def test_the_budget_check_compares_whole_runs_at_other_budgets(tmp_path):
+    """The grid's runs at 2000 steps and the check's own runs at 1000 and 4000: td3bc is better at 4000 beyond the
+    paired interval (not converged), wbrm moves within the noise (converged), fqi is worse with more steps; the
+    check's runs stay out of the grid's tables."""
+    out = tmp_path / "paper_tables"
+    check = paper_tables.budget_check_dir(out)
+    assert check == tmp_path / "paper_tables_budget_check"
+    finals = {"td3bc": {1000: [0.09, 0.11, 0.10], 2000: [0.05, 0.07, 0.06], 4000: [0.02, 0.03, 0.025]},
+              "wbrm": {1000: [0.02, 0.03, 0.01], 2000: [0.010, 0.012, 0.008], 4000: [0.011, 0.009, 0.010]},
+              "fqi": {2000: [0.010, 0.011, 0.012], 4000: [0.020, 0.022, 0.021]}}
+    for algo, by_steps in finals.items():
+        for steps, values in by_steps.items():
+            root = out if steps == 2000 else check / f"steps{steps}"
+            for seed, v in enumerate(values):
+                _run(root, "lqr_exp1", algo, seed, {steps: v})
+    _run(out, "lqr_exp2", "wbrm", 0, {2000: 0.5})  # an env the check did not run: not in its table
+    curves = paper_tables.budget_curves(out)
+    assert set(curves) == {("lqr_exp1", "td3bc"), ("lqr_exp1", "wbrm"), ("lqr_exp1", "fqi")}
+    assert curves[("lqr_exp1", "td3bc")]["runs"][4000] == {0: 0.02, 1: 0.03, 2: 0.025}
+    verdicts = {a: paper_tables.budget_verdict(curves[("lqr_exp1", a)], 2000) for a in finals}
+    assert verdicts["td3bc"]["verdict"] == "not converged" and verdicts["td3bc"]["longest"] == 4000
+    assert verdicts["td3bc"]["change"][0] == pytest.approx(-0.035)
+    assert verdicts["wbrm"]["verdict"] == "converged"
+    assert verdicts["fqi"]["verdict"] == "worse with more steps"
+    assert paper_tables.budget_verdict({"metric": "regret", "runs": {2000: {0: 0.1}}}, 2000)["verdict"] == "n/a"
+
+    from torchrl_wbrm.training.reporting import load_results
+
+    records = load_results(out)
+    assert paper_tables.table_budget(records) == 2000
+    assert {r["config"]["q"]["steps"] for r in records} == {2000}  # the grid's tables read the grid's runs only
+    text = paper_tables.tables(out)
+    assert "### Budget check" in text
+    assert "| env | algorithm | figure | 1000 steps | 2000 steps (table) | 4000 steps | largest − 2000 [95% CI] |" in text
+    assert "| lqr_exp1 | fqi | regret | – | 0.0110 ± 0.0025 | 0.0210 ± 0.0025 | +0.0100 [" in text
+    assert "| lqr_exp1 | td3bc | regret | 0.1000 ± 0.0248 | 0.0600 ± 0.0248 | 0.0250 ± 0.0124 |" in text
+    path = paper_tables.plot_budget_check(out, 2000)
+    assert path == out / "budget_check.png" and path.stat().st_size > 10_000
+    assert paper_tables.budget_table(tmp_path / "elsewhere", 2000) == ""  # no check ran: no section
+
+
 def test_the_learning_curves_figure_draws_a_panel_per_env_and_a_line_per_budget(tmp_path, monkeypatch):
     import matplotlib
 
