@@ -69,8 +69,11 @@ def test_study_summary_run(tmp_path):
 
     tables = tmp_path / "tables.md"
     tables.write_text("## Table 2 (LQR)\n\n| algorithm | return |\n|---|---|\n| wbrm | 85.39 ± 0.04 |\n| bc | 85.44 ± 0.00 |\n\n"
-                      "## Regret\n\n| algorithm | regret |\n|---|---|\n| wbrm | 0.05 ± 0.01 |\n")
-    assert list(markdown_tables(tables.read_text())) == ["table_2_lqr", "regret"]
+                      "## Regret\n\n| algorithm | regret |\n|---|---|\n| wbrm | 0.05 ± 0.01 |\n\n"
+                      "### Headline: every method on every environment (LQR: paired regret, lower is better; "
+                      "otherwise: return, higher is better)\n\n| algorithm | lqr_exp1 regret |\n|---|---|\n| wbrm | 0.006 |\n")
+    headline = "headline_every_method_on_every_environment_lqr_paired_regret"  # cut at 60 characters for wandb
+    assert list(markdown_tables(tables.read_text())) == ["table_2_lqr", "regret", headline]
     fig, ax = plt.subplots()
     ax.plot([0, 1], [1, 0])
     fig.savefig(tmp_path / "study.png")
@@ -82,6 +85,7 @@ def test_study_summary_run(tmp_path):
     assert values["tables/tables/table_2_lqr"]["_type"] == "table-file"
     assert values["tables/tables/table_2_lqr"]["nrows"] == 2
     assert values["tables/tables/regret"]["_type"] == "table-file"
+    assert values[f"tables/tables/{headline}"]["nrows"] == 1  # a long heading's table is logged too
     assert values["figures/study"]["_type"] == "image-file"
     record = _run_record(_records(Path(run_folder)))
     assert record["run_group"] == "test_study" and record["job_type"] == "summary"

@@ -153,8 +153,14 @@ def log_run_summary(logger, results: dict, run_dir: str | os.PathLike) -> None:
     run.log(media)
 
 
+#: the longest table name :func:`markdown_tables` makes from a heading (wandb names a logged table's artifact
+#: ``run-<id>-<key>`` and refuses names over 128 characters)
+MAX_TABLE_NAME = 60
+
+
 def markdown_tables(text: str) -> dict[str, tuple[list[str], list[list[str]]]]:
-    """The pipe tables of a Markdown text, named by the heading above each (``"table_<i>"`` if none):
+    """The pipe tables of a Markdown text, named by the heading above each (``"table_<i>"`` if none; lower case,
+    runs of other characters as ``_``, at most :data:`MAX_TABLE_NAME` characters):
     ``{name: (columns, rows)}``."""
     tables: dict[str, tuple[list[str], list[list[str]]]] = {}
     heading, lines = None, text.splitlines()
@@ -172,6 +178,7 @@ def markdown_tables(text: str) -> dict[str, tuple[list[str], list[list[str]]]]:
                 rows.append((cells + [""] * len(columns))[: len(columns)])
                 i += 1
             base = re.sub(r"[^A-Za-z0-9_]+", "_", heading or f"table_{len(tables)}").strip("_").lower() or "table"
+            base = base[:MAX_TABLE_NAME].rstrip("_")  # wandb refuses artifact names over 128 characters
             name, n = base, 1
             while name in tables:
                 n += 1
