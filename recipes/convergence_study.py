@@ -106,6 +106,8 @@ def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from torchrl_wbrm.training.plots import save_figure
+
     from torchrl_wbrm.evaluation import mean_ci
 
     panels = {
@@ -138,9 +140,7 @@ def report(records: list[tuple[str, int, int, dict]], out: Path) -> str:
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "convergence.png")
     slope_lines = ["| quantity | fitted log-log slope [95% bootstrap CI] | theory's reference slopes |", "|---|---|---|"]
     for kind, slope in slopes.items():
         refs = ", ".join(panels[kind][3])

@@ -471,6 +471,8 @@ def plot_budget_check(out: Path, budget: int) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from torchrl_wbrm.training.plots import save_figure
+
     from torchrl_wbrm.evaluation import mean_ci
 
     curves = budget_curves(out)
@@ -500,11 +502,7 @@ def plot_budget_check(out: Path, budget: int) -> Path | None:
         ax.set_title(f"{env}: final {'paired regret' if regret else 'return'}", fontsize=10)
         ax.legend(fontsize=7, ncol=2, frameon=False)
     fig.suptitle(f"budget check: mean ± 95% CI over seeds; dashed: the table's budget ({budget})", fontsize=10)
-    fig.tight_layout()
-    path = out / "budget_check.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "budget_check.png")
 
 
 def plot(out: Path) -> Path:
@@ -515,7 +513,7 @@ def plot(out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_wbrm.training.plots import plot_ci_rows
+    from torchrl_wbrm.training.plots import plot_ci_rows, save_figure
     from torchrl_wbrm.training.reporting import load_results
 
     records = load_results(out)
@@ -531,11 +529,7 @@ def plot(out: Path) -> Path:
         label = "paired regret" if key == "regret" else ("return (100 episodes)" if env == "mountain_car" else "return")
         ax.set_title(f"{env}: {label}", fontsize=10)
     fig.suptitle("mean ± 95% CI over seeds (LQR: regret against the exact optimum)", fontsize=10)
-    fig.tight_layout()
-    path = out / "paper_tables.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "paper_tables.png")
 
 
 def plot_learning_curves(out: Path, records: list[dict] | None = None) -> Path | None:
@@ -547,6 +541,8 @@ def plot_learning_curves(out: Path, records: list[dict] | None = None) -> Path |
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.training.plots import save_figure
 
     from torchrl_wbrm.training.reporting import load_results
 
@@ -580,11 +576,7 @@ def plot_learning_curves(out: Path, records: list[dict] | None = None) -> Path |
                frameon=False)
     fig.suptitle("evaluations during training: mean ± 95% CI over seeds; dashed: each algorithm's budget (q.steps)",
                  fontsize=10)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
-    path = out / "learning_curves.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "learning_curves.png", rect=(0, 0.08, 1, 1))
 
 
 def main() -> None:

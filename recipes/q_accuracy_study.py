@@ -366,7 +366,7 @@ def plot(out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_wbrm.training.plots import plot_ci_rows
+    from torchrl_wbrm.training.plots import plot_ci_rows, save_figure
 
     records = _records(out)
     blocks = [b for b in BLOCKS if any(r["study"]["block"] == b for r in records)]
@@ -382,11 +382,7 @@ def plot(out: Path) -> Path | None:
         plot_ci_rows(ax, rows, log=True)
         ax.axvline(0.01, color="grey", ls=":", label="goal 0.01")
         ax.set_title(f"{block}: paired regret, all systems pooled (mean ± 95% CI)", fontsize=9)
-    fig.tight_layout()
-    path = out / "q_accuracy_study.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "q_accuracy_study.png", dpi=100)
 
 
 def main() -> None:

@@ -146,7 +146,7 @@ def plot(out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_wbrm.training.plots import plot_ci_rows
+    from torchrl_wbrm.training.plots import plot_ci_rows, save_figure
     from torchrl_wbrm.training.reporting import load_results
 
     records = [r for r in load_results(out) if r.get("study", {}).get("block") == "weighting"]
@@ -160,11 +160,7 @@ def plot(out: Path) -> Path:
         ax.set_title(f"{env}: paired regret (mean ± 95% CI)")
         ax.axvline(0.01, color="grey", ls=":", label="goal 0.01")
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / "weighting_study.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "weighting_study.png")
 
 
 def main() -> None:

@@ -82,10 +82,7 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
         axes[2].set_title("stage 1: held-out ratio loss")
         axes[2].set_xlabel("step")
     fig.suptitle(title)
-    fig.tight_layout()
-    paths.append(run_dir / "training_curve.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(save_figure(fig, run_dir / "training_curve.png"))
 
     if evals:
         fig, axes = plt.subplots(1, 2 if "regret" in evals[-1] else 1, figsize=(10 if "regret" in evals[-1] else 5.5, 3.6), squeeze=False)
@@ -109,11 +106,18 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
             ax.set_xlabel("step")
             ax.set_ylabel("paired regret vs exact optimum")
         fig.suptitle(title)
-        fig.tight_layout()
-        paths.append(run_dir / "evaluation.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(save_figure(fig, run_dir / "evaluation.png"))
     return paths
+
+
+def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110, rect=None) -> Path:
+    """Lay ``fig`` out (``tight_layout``, within ``rect`` when given), write it to ``path`` and close it: the end of
+    every figure of the recipes and studies. Returns the path."""
+    fig.tight_layout(**({} if rect is None else {"rect": rect}))
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def plot_ci_rows(ax, rows: dict[str, list[float]], *, log: bool = False) -> None:
