@@ -123,9 +123,7 @@ def tables(out: Path) -> str:
     from torchrl_wbrm.training.reporting import ci_cell, load_results
 
     records = load_results(out)
-    by = {}
-    for r in records:
-        by.setdefault((_algo(r), r["env"]), []).append(r)
+    by = by_algo_env(records)
     algos = sorted({a for a, _ in by})
     lqr_envs, other_envs = split_envs(records)
 
@@ -134,11 +132,7 @@ def tables(out: Path) -> str:
 
     parts = [headline_table(records)]
     if lqr_envs:
-        optimum = {}
-        for e in lqr_envs:  # the exact optimum is the env's: the same in every run of it (a diverged run may lack it)
-            found = [r["final"]["optimal_return_exact"] for r in records
-                     if r["env"] == e and "optimal_return_exact" in (r.get("final") or {})]
-            optimum[e] = f"{found[0]:.3f}" if found else "–"
+        optimum = {e: "–" if (v := exact_optimum(records, e)) is None else f"{v:.3f}" for e in lqr_envs}
         head = "| algorithm | " + " | ".join(f"{e} return" for e in lqr_envs) + " | paper (exp1, exp2, exp3) |"
         lines = [head, "|" + "---|" * (len(lqr_envs) + 2)]
         lines.append("| exact optimum | " + " | ".join(optimum[e] for e in lqr_envs) + " | 87.84 (the reward cap) |")
@@ -188,6 +182,22 @@ def tables(out: Path) -> str:
     return "\n\n".join(parts)
 
 
+def by_algo_env(records: list[dict]) -> dict[tuple[str, str], list[dict]]:
+    """The runs of each (algorithm, env)."""
+    by: dict[tuple[str, str], list[dict]] = {}
+    for r in records:
+        by.setdefault((_algo(r), r["env"]), []).append(r)
+    return by
+
+
+def exact_optimum(records: list[dict], env: str) -> float | None:
+    """The env's exact optimal return: the same in every run of it (a diverged run may lack it); None if no run
+    has one (not LQR)."""
+    found = [r["final"]["optimal_return_exact"] for r in records
+             if r["env"] == env and "optimal_return_exact" in (r.get("final") or {})]
+    return found[0] if found else None
+
+
 def table_budget(records: list[dict]) -> int | None:
     """The grid's ``q.steps`` (the most common over its runs; None without configs)."""
     from collections import Counter
@@ -205,9 +215,7 @@ def headline_table(records: list[dict]) -> str:
 
     from torchrl_wbrm.training.reporting import ci_cell
 
-    by = {}
-    for r in records:
-        by.setdefault((_algo(r), r["env"]), []).append(r)
+    by = by_algo_env(records)
     algos = sorted({a for a, _ in by})
     lqr_envs, other_envs = split_envs(records)
     columns = [(e, "regret", 4, min) for e in lqr_envs] + [(e, "return", 2, max) for e in other_envs]
@@ -215,9 +223,8 @@ def headline_table(records: list[dict]) -> str:
              "|" + "---|" * (len(columns) + 1)]
     optimum, best = [], {}
     for env, key, _, pick in columns:
-        found = [r["final"]["optimal_return_exact"] for r in records
-                 if r["env"] == env and "optimal_return_exact" in (r.get("final") or {})]
-        optimum.append(f"0 (return {found[0]:.3f})" if key == "regret" and found else "– (none known)")
+        found = exact_optimum(records, env)
+        optimum.append(f"0 (return {found:.3f})" if key == "regret" and found is not None else "– (none known)")
         means = {}
         for a in algos:
             values = [v for r in by.get((a, env), []) if isinstance(v := (r.get("final") or {}).get(key), (int, float))]
