@@ -3,6 +3,7 @@
     python recipes/weighting_study.py              # the full study (about an hour on 2 cores)
     python recipes/weighting_study.py --quick      # a smoke version (seconds; CI runs it)
     python recipes/weighting_study.py --blocks regimes   # one block (weighting, regimes, mountain_car)
+    python recipes/weighting_study.py --blocks regimes --regimes "behaviour start wide (x₀ ~ N(0, 3² I))"
 
 Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
 one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
@@ -16,7 +17,9 @@ Blocks:
   The full grid runs on exp1; exp2 and exp3 run the main contrasts;
 - ``regimes`` (LQR exp1): where the expert's data should carry information the behaviour data lacks: a noisier or
   poorer expert, a behaviour policy far from the expert (no feedback gain, twice the noise), and a small Q network
-  on little behaviour data (where focusing the fit on the expert's region should matter most);
+  on little behaviour data (where focusing the fit on the expert's region should matter most), and a shifted start
+  distribution (the behaviour episodes start from N(0, 3² I) or N(0, 0.3² I), the expert's and the scored ones
+  from the system's N(0, I)); ``--regimes`` runs some of them;
 - ``mountain_car``: unweighted vs the learned ratio on the paper's data sizes.
 
 Defaults are chosen without the ground truth: among the learned-ratio configurations, the one with the lowest
@@ -56,6 +59,10 @@ REGIMES = {
     "expert τ=0.5 (poor)": ["env.lqr_data.expert_tau=0.5"],
     "behaviour far (gain 0, noise 1)": ["env.lqr_data.behaviour_gain_scale=0.0", "env.lqr_data.behaviour_noise_std=1.0"],
     "small Q (1×16) + little data (200 episodes)": ["q.num_cells=[16]", "env.lqr_data.behaviour_episodes=200"],
+    # a shifted start distribution: the behaviour episodes start from N(0, s² I), the expert's and the scored
+    # episodes from the system's N(0, I); the exact ratio and the behaviour samples Q̂ is scored on follow the shift
+    "behaviour start wide (x₀ ~ N(0, 3² I))": ["env.lqr_data.behaviour_initial_std=3.0"],
+    "behaviour start narrow (x₀ ~ N(0, 0.3² I))": ["env.lqr_data.behaviour_initial_std=0.3"],
 }
 MOUNTAIN_CAR = {
     "unweighted": ["ratio.source=none"],
@@ -67,12 +74,16 @@ MOUNTAIN_CAR = {
 BLOCKS = ("weighting", "regimes", "mountain_car")
 
 
-def build_cells(quick: bool, blocks=BLOCKS) -> list[dict]:
+def build_cells(quick: bool, blocks=BLOCKS, regimes=None) -> list[dict]:
     """The study's cells, block by block (``blocks``: any of :data:`BLOCKS`; ``quick`` runs the weighting block's
-    smoke version only)."""
+    smoke version only; ``regimes``: the regimes block's settings to run, default all of :data:`REGIMES`)."""
     unknown = sorted(set(blocks) - set(BLOCKS))
     if unknown:
         raise ValueError(f"weighting_study blocks: unknown {unknown}; choose from {list(BLOCKS)}")
+    regimes = list(REGIMES) if regimes is None else list(regimes)
+    unknown = sorted(set(regimes) - set(REGIMES))
+    if unknown:
+        raise ValueError(f"weighting_study regimes: unknown {unknown}; choose from {list(REGIMES)}")
     cells = []
     envs = ["lqr_exp1"] if quick else ["lqr_exp1", "lqr_exp2", "lqr_exp3"]
     methods = ["unweighted", "learned ŵ (paper)", "learned ½ + ½ŵ"] if quick else list(WEIGHTING)
@@ -81,7 +92,8 @@ def build_cells(quick: bool, blocks=BLOCKS) -> list[dict]:
             cells.append({"block": "weighting", "env": env, "setting": "paper data", "method": method,
                           "overrides": [f"env={env}", *WEIGHTING[method]]})
     if not quick and "regimes" in blocks:
-        for regime, extra in REGIMES.items():
+        for regime in regimes:
+            extra = REGIMES[regime]
             for method in REGIME_METHODS:
                 cells.append({"block": "regimes", "env": "lqr_exp1", "setting": regime, "method": method,
                               "overrides": ["env=lqr_exp1", *extra, *WEIGHTING[method]]})
@@ -168,12 +180,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, 3 methods, 1 seed")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), choices=BLOCKS, help="the blocks to run")
+    parser.add_argument("--regimes", nargs="+", default=None, metavar="REGIME",
+                        help=f"the regimes block's settings to run (default all: {list(REGIMES)})")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/weighting_study")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
-    cells = build_cells(args.quick, args.blocks)
+    try:
+        cells = build_cells(args.quick, args.blocks, args.regimes)
+    except ValueError as error:
+        parser.error(str(error))
     seeds = range(1 if args.quick else args.seeds)
     from torchrl_wbrm.training.runs import QUICK_BUDGET, WEIGHTING_BUDGET, run_cells
 

@@ -218,3 +218,38 @@ def test_cached_datasets_are_reused_and_keyed_by_config(tmp_path):
     other = EnvConfig(lqr_data=LQRDataConfig(behaviour_episodes=40, expert_episodes=30, parallel_envs=30))
     cached_offline_datasets(other, seed=0, cache_dir=tmp_path)
     assert len([p for p in tmp_path.iterdir() if not p.name.startswith(".")]) == 3
+
+
+def test_a_shifted_behaviour_start_moves_the_behaviour_data_only():
+    """``behaviour_initial_std``: the behaviour episodes start from N(0, s² I), the expert's (and the metadata's
+    optimum, the evaluation's start law) keep the system's; the evaluator's behaviour samples follow the shift; a
+    value that is not a positive number is refused by name."""
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.data.factory import EnvConfig
+    from torchrl_wbrm.data.tasks import get_task
+
+    data = LQRDataConfig(behaviour_episodes=400, expert_episodes=200, parallel_envs=200, behaviour_initial_std=3.0)
+    shifted, plain = make_lqr_datasets("exp1", data, seed=0), make_lqr_datasets("exp1", SMALL, seed=0)
+
+    def start_std(buffer):
+        td = buffer[:]
+        return td["observation"][td["step_count"].squeeze(-1) == 0].std().item()
+
+    assert abs(start_std(shifted.transitions) - 3.0) < 0.25
+    assert abs(start_std(shifted.expert_samples) - 1.0) < 0.15 and abs(start_std(plain.transitions) - 1.0) < 0.2
+    assert shifted.metadata["optimal_return"] == pytest.approx(plain.metadata["optimal_return"])
+    assert shifted.metadata["data_config"]["behaviour_initial_std"] == 3.0
+
+    env = OmegaConf.structured(EnvConfig)
+    env.lqr_data.behaviour_initial_std = 3.0
+    task = get_task(env)
+    task.validate()
+    eval_cfg = OmegaConf.create({"q_samples": 2000, "seed": 0})
+    samples = task.evaluator(eval_cfg).eval_samples
+    scale = {name: samples[name]["observation"].pow(2).mean().sqrt().item() for name in ("expert", "behaviour")}
+    assert scale["behaviour"] > 1.5 * scale["expert"], scale
+    for bad in (0.0, -1.0, float("nan")):
+        env.lqr_data.behaviour_initial_std = bad
+        with pytest.raises(ValueError, match="env.lqr_data.behaviour_initial_std"):
+            get_task(env).validate()

@@ -149,3 +149,34 @@ def test_mountain_car_expert_reaches_the_goal():
     returns = episode_returns(data)
     assert len(returns) >= 5
     assert returns.mean().item() > 85  # 91-94 measured over 100 episodes (README)
+
+
+def test_true_ratio_follows_a_shifted_behaviour_start():
+    """Behaviour episodes from x_0 ~ N(0, 2² I) (the expert's from the system's N(0, I)): the ratio that knows the
+    shift reweights them into the expert's law (E_b[w f] = E_e[f]); the ratio that assumes the system's start does
+    not (its E_b[w] is off by far more than its error), so a data shift the ratio ignored would be caught."""
+    from dataclasses import replace
+
+    env = make_lqr_env("exp1", batch_size=[10_000], seed=3)
+    shifted = make_lqr_env(replace(env.base_env.config, initial_std=2.0), batch_size=[10_000], seed=3)
+    expert, behaviour = make_lqr_expert(env, tau=0.3), make_lqr_behaviour(env)
+    b = collect_transitions(shifted, behaviour, 200_000, seed=4)
+    e = collect_transitions(env, expert, 200_000, seed=5)
+    x0 = b["observation"][b["step_count"].squeeze(-1) == 0]
+    assert abs(x0.std().item() - 2.0) < 0.05  # the behaviour's episodes do start from the shifted law
+    knows = lqr_true_density_ratio(env, expert, behaviour, behaviour_initial_std=2.0)
+    ignores = lqr_true_density_ratio(env, expert, behaviour)
+    sa = b.select("observation", "action")
+    w = knows(sa.clone())["density_ratio"].double().squeeze(-1)
+    for f in (lambda td: torch.ones(td.shape[0]), lambda td: (td["observation"] ** 2).sum(-1),
+              lambda td: td["action"][:, 0] * td["observation"][:, 0]):
+        fb, fe = f(b).double(), f(e).double()
+        est = (w * fb).mean().item()
+        se = math.sqrt(((w * fb).var() / len(fb) + fe.var() / len(fe)).item())
+        assert abs(est - fe.mean().item()) < 4 * se, (est, fe.mean().item(), se)
+    w_wrong = ignores(sa.clone())["density_ratio"].double().squeeze(-1)
+    fb, fe = (b["observation"] ** 2).sum(-1).double(), (e["observation"] ** 2).sum(-1).double()
+    se = math.sqrt(((w_wrong * fb).var() / len(fb) + fe.var() / len(fe)).item())
+    assert abs((w_wrong * fb).mean().item() - fe.mean().item()) > 8 * se, ((w_wrong * fb).mean(), fe.mean(), se)
+    with pytest.raises(ValueError, match="initial_std"):
+        env.base_env.state_action_covariances(torch.zeros(2, 2), 0.5, initial_std=0.0)

@@ -329,6 +329,13 @@ def test_weighting_study_runs_the_blocks_asked_for():
     assert {c["block"] for c in every} == set(weighting_study.BLOCKS)
     with pytest.raises(ValueError, match="unknown \\['regime'\\]"):
         weighting_study.build_cells(quick=False, blocks=["regime"])
+    # some regimes only: the shifted starts, each run with every regime method
+    wide = "behaviour start wide (x₀ ~ N(0, 3² I))"
+    some = weighting_study.build_cells(quick=False, blocks=["regimes"], regimes=[wide])
+    assert {c["setting"] for c in some} == {wide} and len(some) == len(weighting_study.REGIME_METHODS)
+    assert all("env.lqr_data.behaviour_initial_std=3.0" in c["overrides"] for c in some)
+    with pytest.raises(ValueError, match="unknown \\['shifted'\\]"):
+        weighting_study.build_cells(quick=False, blocks=["regimes"], regimes=["shifted"])
 
 
 # ---------------------------------------------------------------------- q_accuracy_study: one change a round

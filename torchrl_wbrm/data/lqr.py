@@ -1,7 +1,7 @@
 """Offline datasets for the LQR system: behaviour and expert episodes collected on the batched env."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import torch
@@ -25,6 +25,10 @@ class LQRDataConfig:
         expert_tau: the paper's ``tau``: expert ``a = (1 - tau)(-Kx) + tau N(0, I)`` (paper: 0.05).
         behaviour_gain_scale: behaviour ``a = -scale K x + N(0, noise^2 I)``.
         behaviour_noise_std: see above.
+        behaviour_initial_std: the behaviour episodes start from ``x_0 ~ N(0, behaviour_initial_std^2 I)``
+            (``None``: the system's ``env.lqr.initial_std``, as the expert's and the evaluation's do). Another value
+            shifts the behaviour data's start distribution away from the one the policy is scored on; the exact
+            ratio and the behaviour samples Q̂ is scored on follow it.
         parallel_envs: systems stepped at once while collecting.
         storage: ``"lazy"`` (the sets' replay buffers in RAM) or ``"memmap"`` (``LazyMemmapStorage``, on disk).
         dataset_dir: a dataset saved by :meth:`OfflineDatasets.save` (``recipes/make_dataset.py``) to train on instead
@@ -38,6 +42,7 @@ class LQRDataConfig:
     expert_tau: float = 0.05
     behaviour_gain_scale: float = 0.5
     behaviour_noise_std: float = 0.5
+    behaviour_initial_std: Optional[float] = None
     parallel_envs: int = 1000
     storage: str = "lazy"
     dataset_dir: Optional[str] = None
@@ -67,10 +72,13 @@ def make_lqr_datasets(
             f"Need behaviour_episodes >= 2 and expert_episodes >= 1, got {data.behaviour_episodes} and "
             f"{data.expert_episodes}."
         )
-    def env_for(episodes: int, env_seed: int):
-        return make_lqr_env(experiment, batch_size=[min(data.parallel_envs, episodes)], seed=env_seed)
+    def env_for(episodes: int, env_seed: int, system=experiment):
+        return make_lqr_env(system, batch_size=[min(data.parallel_envs, episodes)], seed=env_seed)
 
     env_b = env_for(data.behaviour_episodes, seed)
+    if data.behaviour_initial_std is not None:  # the same system, the behaviour episodes from another start law
+        shifted = replace(env_b.base_env.config, initial_std=data.behaviour_initial_std)
+        env_b = env_for(data.behaviour_episodes, seed, shifted)
     horizon = env_b.base_env.config.horizon
     gamma = env_b.base_env.config.gamma
     behaviour_policy = make_lqr_behaviour(
@@ -80,7 +88,7 @@ def make_lqr_datasets(
     env_e = env_for(data.expert_episodes, seed + 1)
     expert_policy = make_lqr_expert(env_e, tau=data.expert_tau)
     expert = collect_transitions(env_e, expert_policy, data.expert_episodes * horizon, seed=seed + 1)
-    config = env_b.base_env.config
+    config = env_e.base_env.config  # the system's own (its start law is the expert's and the evaluation's)
     metadata = {
         "env": "lqr",
         "lqr_config": config.to_dict(),
@@ -90,7 +98,7 @@ def make_lqr_datasets(
         "expert_policy": repr(expert_policy.module),
         "behaviour_mean_return": episode_returns(behaviour, gamma=gamma).mean().item(),
         "expert_mean_return": episode_returns(expert, gamma=gamma).mean().item(),
-        "optimal_return": env_b.base_env.optimal_return(),
+        "optimal_return": env_e.base_env.optimal_return(),
     }
     generator = torch.Generator().manual_seed(seed + 2)
     return OfflineDatasets.from_behaviour_and_expert(

@@ -493,7 +493,7 @@ class LQREnv(BatchedEpisodicEnv):
         return torch.as_tensor(np.stack(_finite_horizon_gains(m["F"], m["G"], m["R"], m["S"], self.config.gamma, horizon)))
 
     def state_action_covariances(
-        self, gain, action_noise_std, horizon: int | None = None
+        self, gain, action_noise_std, horizon: int | None = None, initial_std: float | None = None
     ) -> torch.Tensor:
         """Covariances ``C_t`` of ``(x_t, a_t)`` (zero mean) under ``a_t = -M_t x_t + N(0, Sigma_a)``.
 
@@ -501,6 +501,7 @@ class LQREnv(BatchedEpisodicEnv):
             gain: ``M`` as an ``m x d`` matrix, or ``horizon x m x d`` for a time-varying policy.
             action_noise_std: a float (isotropic) or an ``m``-vector of standard deviations.
             horizon: number of steps (defaults to the config's).
+            initial_std: ``x_0 ~ N(0, initial_std^2 I)`` (defaults to the config's): another start distribution.
 
         Returns:
             a float64 tensor of shape ``(horizon, d + m, d + m)``.
@@ -515,7 +516,10 @@ class LQREnv(BatchedEpisodicEnv):
         if gains.shape != (horizon, m, d):
             raise ValueError(f"gain must have shape ({m}, {d}) or ({horizon}, {m}, {d}), got {gains.shape}.")
         Sa = np.diag(np.broadcast_to(np.asarray(action_noise_std, dtype=np.float64) ** 2, (m,)))
-        Sx = self.config.initial_std**2 * np.eye(d)
+        initial_std = self.config.initial_std if initial_std is None else initial_std
+        if not (math.isfinite(initial_std) and initial_std > 0):
+            raise ValueError(f"initial_std must be finite and > 0, got {initial_std!r}.")
+        Sx = initial_std**2 * np.eye(d)
         noise = self.config.transition_noise_std**2 * np.eye(d)
         out = np.zeros((horizon, d + m, d + m))
         for t in range(horizon):
@@ -594,7 +598,9 @@ class LinearGaussianDensityRatio(torch.nn.Module):
     datasets sample is the mixture ``sum_t p_t N(0, C_t)`` over ``t = 0..horizon-1``: ``time_weights="uniform"``
     (``p_t = 1/horizon``, every transition of every episode kept once: how this project's datasets are sampled)
     or ``"discounted"`` (``p_t ∝ gamma^t``, the normalised discounted occupancy of RL theory). The ratio is
-    ``w(x, a) = p_expert(x, a) / p_behaviour(x, a)``, evaluated stably in log space.
+    ``w(x, a) = p_expert(x, a) / p_behaviour(x, a)``, evaluated stably in log space. ``behaviour_initial_std``:
+    the behaviour episodes start from ``N(0, behaviour_initial_std^2 I)`` instead of the system's start law (a shifted
+    start distribution; the expert's keep the system's).
 
     Reads ``in_keys`` (``"observation"``, ``"action"``) and writes ``"density_ratio"`` when wrapped in a
     ``TensorDictModule``; :meth:`forward` takes the two tensors and returns ``(*batch, 1)``.
@@ -610,6 +616,7 @@ class LinearGaussianDensityRatio(torch.nn.Module):
         *,
         time_weights: str = "uniform",
         horizon: int | None = None,
+        behaviour_initial_std: float | None = None,
     ):
         super().__init__()
         horizon = env.config.horizon if horizon is None else horizon
@@ -622,8 +629,9 @@ class LinearGaussianDensityRatio(torch.nn.Module):
             raise ValueError(f"time_weights must be 'uniform' or 'discounted', got {time_weights!r}.")
         self.time_weights = time_weights
         self.register_buffer("log_p", p.log())
-        for name, gain, std in (("expert", expert_gain, expert_noise_std), ("behaviour", behaviour_gain, behaviour_noise_std)):
-            covs = env.state_action_covariances(gain, std, horizon)
+        for name, gain, std, start in (("expert", expert_gain, expert_noise_std, None),
+                                       ("behaviour", behaviour_gain, behaviour_noise_std, behaviour_initial_std)):
+            covs = env.state_action_covariances(gain, std, horizon, initial_std=start)
             eig = torch.linalg.eigvalsh(covs)
             if eig.min() <= 0:
                 raise ValueError(

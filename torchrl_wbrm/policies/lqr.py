@@ -109,17 +109,21 @@ def make_lqr_behaviour(
 
 
 def lqr_true_density_ratio(
-    env, expert: TensorDictModule, behaviour: TensorDictModule, *, time_weights: str = "uniform"
+    env, expert: TensorDictModule, behaviour: TensorDictModule, *, time_weights: str = "uniform",
+    behaviour_initial_std: float | None = None,
 ) -> TensorDictModule:
     """The exact ratio ``d P^e / d P^b`` of the two policies' occupancies, as a module writing ``"density_ratio"``.
 
     ``time_weights="uniform"`` (default) mixes the per-step laws over ``t = 0..horizon-1`` with equal weights,
     which is how the datasets of :mod:`torchrl_wbrm.data` sample transitions (every step of every episode once).
+    ``behaviour_initial_std``: the behaviour episodes start from ``N(0, behaviour_initial_std^2 I)`` (``None``: the
+    system's ``initial_std``, as the expert's do).
     """
     e, b = expert.module, behaviour.module
     if not (isinstance(e, LinearGaussianPolicy) and isinstance(b, LinearGaussianPolicy)):
         raise TypeError("lqr_true_density_ratio needs two LinearGaussianPolicy modules (see make_lqr_expert).")
     ratio = LinearGaussianDensityRatio(
-        _base(env), e.gain, e.noise_std, b.gain, b.noise_std, time_weights=time_weights
+        _base(env), e.gain, e.noise_std, b.gain, b.noise_std, time_weights=time_weights,
+        behaviour_initial_std=behaviour_initial_std,
     )
     return TensorDictModule(ratio, in_keys=["observation", "action"], out_keys=["density_ratio"])

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from torchrl.data import Bounded
 
@@ -54,6 +55,10 @@ class LQRTask(Task):
             raise ValueError(f"env.lqr_data.expert_tau must lie in [0, 1], got {data.expert_tau!r}.")
         if not data.behaviour_noise_std >= 0:
             raise ValueError(f"env.lqr_data.behaviour_noise_std must be >= 0, got {data.behaviour_noise_std!r}.")
+        start = data.behaviour_initial_std
+        if start is not None and not (isinstance(start, (int, float)) and math.isfinite(start) and start > 0):
+            raise ValueError(f"env.lqr_data.behaviour_initial_std must be null (the system's initial_std) or a finite "
+                             f"number > 0, got {start!r}.")
         lqr = self.lqr_config
         if lqr.reward_clip is not None:
             if lqr.reward_clip != 0:
@@ -108,16 +113,21 @@ class LQREvaluator(Evaluator):
         super().__init__()
         self.task = task
         lqr_config, data_cfg = task.lqr_config, task.data_config
-        env = make_lqr_env(lqr_config, batch_size=[min(eval_cfg.q_samples, 10_000)], seed=eval_cfg.seed + 1)
+        batch = [min(eval_cfg.q_samples, 10_000)]
+        env = make_lqr_env(lqr_config, batch_size=batch, seed=eval_cfg.seed + 1)
+        start = data_cfg.behaviour_initial_std  # the behaviour's samples from its own start law (None: the system's)
+        env_b = env if start is None else make_lqr_env(replace(lqr_config, initial_std=start), batch_size=batch,
+                                                       seed=eval_cfg.seed + 1)
         expert = make_lqr_expert(env, tau=data_cfg.expert_tau)
         behaviour = make_lqr_behaviour(env, gain_scale=data_cfg.behaviour_gain_scale,
                                        noise_std=data_cfg.behaviour_noise_std)
         n = math.ceil(eval_cfg.q_samples / env.batch_size[0] / lqr_config.horizon) * env.batch_size[0] * lqr_config.horizon
-        for name, policy, seed in (("expert", expert, eval_cfg.seed + 2), ("behaviour", behaviour, eval_cfg.seed + 3)):
-            self.eval_samples[name] = collect_transitions(env, policy, n, seed=seed)[: eval_cfg.q_samples].select(
+        for name, policy, on, seed in (("expert", expert, env, eval_cfg.seed + 2),
+                                       ("behaviour", behaviour, env_b, eval_cfg.seed + 3)):
+            self.eval_samples[name] = collect_transitions(on, policy, n, seed=seed)[: eval_cfg.q_samples].select(
                 "observation", "action"
             )
-        self.true_ratio = lqr_true_density_ratio(env, expert, behaviour)
+        self.true_ratio = lqr_true_density_ratio(env, expert, behaviour, behaviour_initial_std=start)
 
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         out: dict = {}
