@@ -124,8 +124,51 @@ def tables(out: Path) -> str:
         metrics = lqr if block != "mountain_car" else {"return (100 episodes)": "final.return",
                                                        "ESS of weights": "weights.ess"}
         parts.append(f"### {title}\n\n" + results_table(recs, ["=study.env", "=study.setting", "=study.method"], metrics))
+    paired = paired_table(records)
+    if paired:
+        parts.append("### Against the unweighted residual, paired over seeds (LQR)\n\n" + paired)
     parts.append("### select: the lowest held-out Bellman residual among learned-ratio configurations\n\n" + select(records))
     return "\n\n".join(parts)
+
+
+#: the figures :func:`paired_table` compares (lower is better for both)
+PAIRED = {"paired regret": "regret", "Q̂ error / spread (expert)": "q_error_expert"}
+
+
+def paired_table(records: list[dict]) -> str:
+    """Each weighted method against ``unweighted`` in the same (block, env, setting), on the LQR figures: the mean of
+    the per-seed differences (method − unweighted) with its 95% Student-t interval over the seeds both ran (the same
+    data and initialisation for a seed), and whether the interval lies below 0 (``better``), above (``worse``) or
+    holds 0 (``tie``). Pairing removes the seed-to-seed spread both share, which the per-method intervals above keep:
+    this is the table that says whether weighting pays. Empty without LQR runs of ``unweighted``."""
+    from torchrl_wbrm.evaluation import mean_ci
+    from torchrl_wbrm.training.reporting import split_by_status
+
+    groups: dict[tuple, dict[str, dict[int, dict]]] = {}
+    for r in split_by_status(records)[0]:
+        s = r.get("study", {})
+        if "regret" not in (r.get("final") or {}):  # LQR runs only (MountainCar has no regret)
+            continue
+        groups.setdefault((s.get("block"), s.get("env"), s.get("setting")), {}).setdefault(s.get("method"), {})[
+            r["seed"]] = r["final"]
+    lines = ["| block | env | setting | method | seeds | " + " | ".join(f"{t}: method − unweighted [95% CI]"
+                                                                        for t in PAIRED) + " |",
+             "|" + "---|" * (5 + len(PAIRED))]
+    for (block, env, setting), methods in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        base = methods.get("unweighted")
+        if not base:
+            continue
+        for method, finals in sorted(methods.items()):
+            seeds = sorted(set(finals) & set(base))
+            if method == "unweighted" or len(seeds) < 2:
+                continue
+            cells = []
+            for key in PAIRED.values():
+                ci = mean_ci([finals[k][key] - base[k][key] for k in seeds])
+                verdict = "better" if ci.high < 0 else ("worse" if ci.low > 0 else "tie")
+                cells.append(f"{ci.mean:+.4f} [{ci.low:+.4f}, {ci.high:+.4f}] {verdict}")
+            lines.append(f"| {block} | {env} | {setting} | {method} | {len(seeds)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) if len(lines) > 2 else ""
 
 
 def select(records: list[dict]) -> str:

@@ -338,6 +338,36 @@ def test_weighting_study_runs_the_blocks_asked_for():
         weighting_study.build_cells(quick=False, blocks=["regimes"], regimes=["shifted"])
 
 
+def test_weighting_study_pairs_each_method_with_the_unweighted_residual_over_seeds():
+    """Per (block, env, setting), each method minus ``unweighted`` seed by seed: a method better on every seed by a
+    steady margin is ``better`` even where the per-method intervals overlap (the seeds share most of the spread); a
+    noisy difference is a ``tie``; a seed only one side ran is left out; MountainCar (no regret) is not paired."""
+    import weighting_study
+
+    def rec(setting, method, seed, regret, q_error, env="lqr_exp1"):
+        final = {"regret": regret, "q_error_expert": q_error} if env != "mountain_car" else {"return": regret}
+        return {"status": "finished", "seed": seed, "final": final,
+                "study": {"block": "regimes", "env": env, "setting": setting, "method": method}}
+
+    base = [0.02, 0.05, 0.03, 0.04]  # a wide seed-to-seed spread
+    records = [rec("wide", "unweighted", k, v, 0.3) for k, v in enumerate(base)]
+    records += [rec("wide", "steady", k, v - 0.01, 0.3 + 0.05 * (-1) ** k) for k, v in enumerate(base)]
+    records += [rec("wide", "steady", 9, 0.0, 0.0)]  # no unweighted run of seed 9: not paired
+    records += [rec("car", m, k, 90.0, 0.0, env="mountain_car") for m in ("unweighted", "steady") for k in range(3)]
+    text = weighting_study.paired_table(records)
+    row = next(line for line in text.splitlines() if "| steady |" in line)
+    assert row.startswith("| regimes | lqr_exp1 | wide | steady | 4 | -0.0100 [-0.0100, -0.0100] better | ")
+    assert row.endswith(" tie |") and "car" not in text
+    from torchrl_wbrm.training.reporting import results_table
+
+    per_method = results_table(records[:8], ["=study.method"], {"regret": "final.regret"})
+    assert "0.0250 ± 0.0205" in per_method and "0.0350 ± 0.0205" in per_method  # unpaired: the intervals overlap
+    records += [rec("wide", "worse", k, v + 0.02 + 0.001 * k, 0.3) for k, v in enumerate(base)]
+    worse = next(line for line in weighting_study.paired_table(records).splitlines() if "| worse |" in line)
+    assert "| worse | 4 | +0.0215 [" in worse and worse.endswith("] worse | +0.0000 [+0.0000, +0.0000] tie |")
+    assert weighting_study.paired_table([r for r in records if r["study"]["method"] != "unweighted"]) == ""
+
+
 # ---------------------------------------------------------------------- q_accuracy_study: one change a round
 def _q_record(block, method, env, seed, residual, wall=30.0):
     return {"study": {"block": block, "env": env, "setting": block, "method": method}, "seed": seed,
