@@ -195,7 +195,9 @@ def select(records: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def plot(out: Path) -> Path:
+def plot(out: Path) -> Path | None:
+    """``weighting_study.png``: the weighting block's paired regret per env and method (mean ± 95% CI); None when
+    that block has no runs (``--blocks regimes`` or ``mountain_car`` alone)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -206,6 +208,8 @@ def plot(out: Path) -> Path:
 
     records = [r for r in load_results(out) if r.get("study", {}).get("block") == "weighting"]
     envs = sorted({r["study"]["env"] for r in records})
+    if not envs:
+        return None
     fig, axes = plt.subplots(1, len(envs), figsize=(5 * len(envs), 4.5), sharey=True, squeeze=False)
     methods = list(dict.fromkeys(r["study"]["method"] for r in records))
     for ax, env in zip(axes[0], envs):
@@ -242,11 +246,11 @@ def main() -> None:
     run_cells(cells, seeds, budget, out, jobs=args.jobs)
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
-    plot(out)
+    figure = plot(out)
     print(text)
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
-    log_study_summary("weighting_study", out, tables=[out / "tables.md"], figures=[out / "weighting_study.png"])
+    log_study_summary("weighting_study", out, tables=[out / "tables.md"], figures=[figure] if figure else [])
 
 
 if __name__ == "__main__":

@@ -368,6 +368,23 @@ def test_weighting_study_pairs_each_method_with_the_unweighted_residual_over_see
     assert weighting_study.paired_table([r for r in records if r["study"]["method"] != "unweighted"]) == ""
 
 
+def test_weighting_study_reports_a_regimes_only_run_without_a_figure(tmp_path):
+    """``--blocks regimes`` alone: the tables hold the regimes and the paired table; the weighting block's figure is
+    not drawn (there is nothing to draw), where it used to fail on zero panels after every run had finished."""
+    import weighting_study
+
+    for seed, (unweighted, default) in enumerate([(0.03, 0.02), (0.05, 0.04), (0.04, 0.03)]):
+        for method, regret in (("unweighted", unweighted), ("learned ŵ^0.25 (the recipe's default)", default)):
+            run = tmp_path / "regimes" / "lqr_exp1" / "wide" / method.replace(" ", "_") / f"seed{seed}"
+            run.mkdir(parents=True)
+            (run / "results.json").write_text(json.dumps({
+                "status": "finished", "seed": seed, "final": {"regret": regret, "q_error_expert": 0.2},
+                "study": {"block": "regimes", "env": "lqr_exp1", "setting": "wide", "method": method}}))
+    assert weighting_study.plot(tmp_path) is None
+    text = weighting_study.tables(tmp_path)
+    assert "### Regimes (LQR exp1)" in text and "-0.0100 [-0.0100, -0.0100] better" in text
+
+
 # ---------------------------------------------------------------------- q_accuracy_study: one change a round
 def _q_record(block, method, env, seed, residual, wall=30.0):
     return {"study": {"block": block, "env": env, "setting": block, "method": method}, "seed": seed,
