@@ -74,9 +74,10 @@ MOUNTAIN_CAR = {
 BLOCKS = ("weighting", "regimes", "mountain_car")
 
 
-def build_cells(quick: bool, blocks=BLOCKS, regimes=None) -> list[dict]:
+def build_cells(quick: bool, blocks=BLOCKS, regimes=None, methods=None) -> list[dict]:
     """The study's cells, block by block (``blocks``: any of :data:`BLOCKS`; ``quick`` runs the weighting block's
-    smoke version only; ``regimes``: the regimes block's settings to run, default all of :data:`REGIMES`)."""
+    smoke version only; ``regimes``: the regimes block's settings to run, default all of :data:`REGIMES`;
+    ``methods``: its methods, default all of :data:`REGIME_METHODS`, e.g. two of them for more seeds)."""
     unknown = sorted(set(blocks) - set(BLOCKS))
     if unknown:
         raise ValueError(f"weighting_study blocks: unknown {unknown}; choose from {list(BLOCKS)}")
@@ -84,6 +85,10 @@ def build_cells(quick: bool, blocks=BLOCKS, regimes=None) -> list[dict]:
     unknown = sorted(set(regimes) - set(REGIMES))
     if unknown:
         raise ValueError(f"weighting_study regimes: unknown {unknown}; choose from {list(REGIMES)}")
+    regime_methods = list(REGIME_METHODS) if methods is None else list(methods)
+    unknown = sorted(set(regime_methods) - set(REGIME_METHODS))
+    if unknown:
+        raise ValueError(f"weighting_study regime methods: unknown {unknown}; choose from {REGIME_METHODS}")
     cells = []
     envs = ["lqr_exp1"] if quick else ["lqr_exp1", "lqr_exp2", "lqr_exp3"]
     methods = ["unweighted", "learned ŵ (paper)", "learned ½ + ½ŵ"] if quick else list(WEIGHTING)
@@ -94,7 +99,7 @@ def build_cells(quick: bool, blocks=BLOCKS, regimes=None) -> list[dict]:
     if not quick and "regimes" in blocks:
         for regime in regimes:
             extra = REGIMES[regime]
-            for method in REGIME_METHODS:
+            for method in regime_methods:
                 cells.append({"block": "regimes", "env": "lqr_exp1", "setting": regime, "method": method,
                               "overrides": ["env=lqr_exp1", *extra, *WEIGHTING[method]]})
     if not quick and "mountain_car" in blocks:
@@ -229,13 +234,15 @@ def main() -> None:
     parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), choices=BLOCKS, help="the blocks to run")
     parser.add_argument("--regimes", nargs="+", default=None, metavar="REGIME",
                         help=f"the regimes block's settings to run (default all: {list(REGIMES)})")
+    parser.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
+                        help=f"the regimes block's methods to run (default all: {REGIME_METHODS})")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="results/weighting_study")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out)
     try:
-        cells = build_cells(args.quick, args.blocks, args.regimes)
+        cells = build_cells(args.quick, args.blocks, args.regimes, args.methods)
     except ValueError as error:
         parser.error(str(error))
     seeds = range(1 if args.quick else args.seeds)

@@ -336,6 +336,11 @@ def test_weighting_study_runs_the_blocks_asked_for():
     assert all("env.lqr_data.behaviour_initial_std=3.0" in c["overrides"] for c in some)
     with pytest.raises(ValueError, match="unknown \\['shifted'\\]"):
         weighting_study.build_cells(quick=False, blocks=["regimes"], regimes=["shifted"])
+    two = ["unweighted", "learned ŵ^0.25 (the recipe's default)"]
+    pair = weighting_study.build_cells(quick=False, blocks=["regimes"], regimes=[wide], methods=two)
+    assert [c["method"] for c in pair] == two
+    with pytest.raises(ValueError, match="methods: unknown \\['raw'\\]"):
+        weighting_study.build_cells(quick=False, blocks=["regimes"], methods=["raw"])
 
 
 def test_weighting_study_pairs_each_method_with_the_unweighted_residual_over_seeds():
