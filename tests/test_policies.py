@@ -157,11 +157,12 @@ def test_true_ratio_follows_a_shifted_behaviour_start():
     not (its E_b[w] is off by far more than its error), so a data shift the ratio ignored would be caught."""
     from dataclasses import replace
 
-    env = make_lqr_env("exp1", batch_size=[10_000], seed=3)
-    shifted = make_lqr_env(replace(env.base_env.config, initial_std=2.0), batch_size=[10_000], seed=3)
+    # 5,000 systems x 20 steps: 100,000 transitions are whole episodes (the ratio mixes t = 0..19 uniformly)
+    env = make_lqr_env("exp1", batch_size=[5_000], seed=3)
+    shifted = make_lqr_env(replace(env.base_env.config, initial_std=2.0), batch_size=[5_000], seed=3)
     expert, behaviour = make_lqr_expert(env, tau=0.3), make_lqr_behaviour(env)
-    b = collect_transitions(shifted, behaviour, 200_000, seed=4)
-    e = collect_transitions(env, expert, 200_000, seed=5)
+    b = collect_transitions(shifted, behaviour, 100_000, seed=4)
+    e = collect_transitions(env, expert, 100_000, seed=5)
     x0 = b["observation"][b["step_count"].squeeze(-1) == 0]
     assert abs(x0.std().item() - 2.0) < 0.05  # the behaviour's episodes do start from the shifted law
     knows = lqr_true_density_ratio(env, expert, behaviour, behaviour_initial_std=2.0)
