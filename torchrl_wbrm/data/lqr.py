@@ -7,10 +7,10 @@ from typing import Optional
 import torch
 
 from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions, episode_returns
-from torchrl_wbrm.envs import LQRConfig, make_lqr_env
+from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.policies import make_lqr_behaviour, make_lqr_expert
 
-__all__ = ["LQRDataConfig", "make_lqr_datasets"]
+__all__ = ["LQRDataConfig", "behaviour_system", "make_lqr_datasets"]
 
 
 @dataclass
@@ -48,6 +48,12 @@ class LQRDataConfig:
     dataset_dir: Optional[str] = None
 
 
+def behaviour_system(system: LQRConfig, data: LQRDataConfig) -> LQRConfig:
+    """The system the behaviour episodes run on: ``system`` itself, or with the start law
+    ``N(0, data.behaviour_initial_std^2 I)`` when that is set (a shifted start distribution; same dynamics)."""
+    return system if data.behaviour_initial_std is None else replace(system, initial_std=data.behaviour_initial_std)
+
+
 def make_lqr_datasets(
     experiment: str | LQRConfig = "exp1",
     data: LQRDataConfig | None = None,
@@ -72,20 +78,19 @@ def make_lqr_datasets(
             f"Need behaviour_episodes >= 2 and expert_episodes >= 1, got {data.behaviour_episodes} and "
             f"{data.expert_episodes}."
         )
-    def env_for(episodes: int, env_seed: int, system=experiment):
-        return make_lqr_env(system, batch_size=[min(data.parallel_envs, episodes)], seed=env_seed)
+    system = LQREnv(experiment).config  # a paper experiment's name or an LQRConfig, resolved as the env does
 
-    env_b = env_for(data.behaviour_episodes, seed)
-    if data.behaviour_initial_std is not None:  # the same system, the behaviour episodes from another start law
-        shifted = replace(env_b.base_env.config, initial_std=data.behaviour_initial_std)
-        env_b = env_for(data.behaviour_episodes, seed, shifted)
+    def env_for(episodes: int, env_seed: int, config: LQRConfig):
+        return make_lqr_env(config, batch_size=[min(data.parallel_envs, episodes)], seed=env_seed)
+
+    env_b = env_for(data.behaviour_episodes, seed, behaviour_system(system, data))
     horizon = env_b.base_env.config.horizon
     gamma = env_b.base_env.config.gamma
     behaviour_policy = make_lqr_behaviour(
         env_b, gain_scale=data.behaviour_gain_scale, noise_std=data.behaviour_noise_std
     )
     behaviour = collect_transitions(env_b, behaviour_policy, data.behaviour_episodes * horizon, seed=seed)
-    env_e = env_for(data.expert_episodes, seed + 1)
+    env_e = env_for(data.expert_episodes, seed + 1, system)
     expert_policy = make_lqr_expert(env_e, tau=data.expert_tau)
     expert = collect_transitions(env_e, expert_policy, data.expert_episodes * horizon, seed=seed + 1)
     config = env_e.base_env.config  # the system's own (its start law is the expert's and the evaluation's)

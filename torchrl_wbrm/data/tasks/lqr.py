@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 from torchrl.data import Bounded
 
@@ -116,8 +115,8 @@ class LQREvaluator(Evaluator):
         batch = [min(eval_cfg.q_samples, 10_000)]
         env = make_lqr_env(lqr_config, batch_size=batch, seed=eval_cfg.seed + 1)
         start = data_cfg.behaviour_initial_std  # the behaviour's samples from its own start law (None: the system's)
-        env_b = env if start is None else make_lqr_env(replace(lqr_config, initial_std=start), batch_size=batch,
-                                                       seed=eval_cfg.seed + 1)
+        env_b = env if start is None else make_lqr_env(lqr_data.behaviour_system(lqr_config, data_cfg),
+                                                       batch_size=batch, seed=eval_cfg.seed + 1)
         expert = make_lqr_expert(env, tau=data_cfg.expert_tau)
         behaviour = make_lqr_behaviour(env, gain_scale=data_cfg.behaviour_gain_scale,
                                        noise_std=data_cfg.behaviour_noise_std)
