@@ -4,6 +4,7 @@
     python recipes/weighting_study.py --quick      # a smoke version (seconds; CI runs it)
     python recipes/weighting_study.py --blocks regimes   # one block (weighting, regimes, mountain_car)
     python recipes/weighting_study.py --blocks regimes --regimes "behaviour start wide (x₀ ~ N(0, 3² I))"
+    python recipes/weighting_study.py ... --first-seed 10 --seeds 10 --out <new>   # fresh seeds 10-19
 
 Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
 one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
@@ -230,7 +231,11 @@ def plot(out: Path) -> Path | None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, 3 methods, 1 seed")
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=3, help="how many seeds (default 3; --quick: 1)")
+    parser.add_argument("--first-seed", type=int, default=0,
+                        help="the first seed (default 0): fresh seeds to confirm a finding, e.g. --first-seed 10 "
+                             "--seeds 10 runs seeds 10-19 (into an --out of their own, since the tables read "
+                             "every run there)")
     parser.add_argument("--blocks", nargs="+", default=list(BLOCKS), choices=BLOCKS, help="the blocks to run")
     parser.add_argument("--regimes", nargs="+", default=None, metavar="REGIME",
                         help=f"the regimes block's settings to run (default all: {list(REGIMES)})")
@@ -245,7 +250,10 @@ def main() -> None:
         cells = build_cells(args.quick, args.blocks, args.regimes, args.methods)
     except ValueError as error:
         parser.error(str(error))
-    seeds = range(1 if args.quick else args.seeds)
+    if args.first_seed < 0 or args.seeds < 1:
+        parser.error(f"--first-seed must be >= 0 and --seeds >= 1, got --first-seed {args.first_seed} "
+                     f"--seeds {args.seeds}")
+    seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
     from torchrl_wbrm.training.runs import QUICK_BUDGET, WEIGHTING_BUDGET, run_cells
 
     budget = QUICK_BUDGET if args.quick else WEIGHTING_BUDGET

@@ -125,11 +125,14 @@ def test_make_dataset(tmp_path):
 
 def test_weighting_study_quick(tmp_path):
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "weighting_study.py"), "--quick", "--jobs", "1", "--out", str(tmp_path)],
+        [sys.executable, str(ROOT / "recipes" / "weighting_study.py"), "--quick", "--jobs", "1", "--out", str(tmp_path),
+         "--first-seed", "3"],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
         env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = sorted(p.parent.name for p in tmp_path.rglob("results.json"))
+    assert runs and set(runs) == {"seed3"}, runs  # --first-seed 3: the one quick seed is seed 3, not seed 0
     tables = (tmp_path / "tables.md").read_text()
     assert "unweighted" in tables and "learned ŵ (paper)" in tables and "select" in tables
     assert (tmp_path / "weighting_study.png").is_file()

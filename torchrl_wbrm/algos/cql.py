@@ -20,35 +20,39 @@ class CQLConfig:
     actions (:class:`~torchrl_wbrm.modules.action_scaling.ActionScaling`) so the uniform actions cover the env's box.
 
     Attributes:
-        min_q_weight: the conservative penalty's weight (d3rlpy's ``conservative_weight`` 5, the paper's α).
+        min_q_weight: the conservative penalty's weight α (5: Kumar et al.'s setting for the Gym MuJoCo tasks,
+            d3rlpy's ``conservative_weight``).
         temperature: its log-sum-exp temperature.
         num_random: uniform actions per state (and policy actions per state and next state).
-        with_lagrange, lagrange_thresh: the Lagrangian variant (the paper's CQL with a learned α', d3rlpy's
-            default): the critics' penalty is ``α'·min_q_weight·(gap − lagrange_thresh)`` with the gap ``log Σ exp Q
-            − Q(data)``, and α' ≥ 0 rises while the gap exceeds ``lagrange_thresh`` (the paper's τ on the gap
-            itself, d3rlpy's ``alpha_threshold`` 10; Kumar et al.'s code compares ``min_q_weight·gap`` with it).
+        with_lagrange, lagrange_thresh: the Lagrangian variant, off by default. With it the critics' penalty is
+            ``α'·min_q_weight·(gap − lagrange_thresh)`` with the gap ``log Σ exp Q − Q(data)``, and α' ≥ 0 rises
+            while the gap exceeds ``lagrange_thresh`` (the paper's τ on the gap itself, d3rlpy's
+            ``alpha_threshold`` 10; Kumar et al.'s code compares ``min_q_weight·gap`` with it). Kumar et al. use it
+            for AntMaze, Adroit and Kitchen and the fixed weight for the Gym MuJoCo tasks, the continuous-control
+            setting closest to LQR and MountainCar. Why it is off here, readable from a run's own ``alpha_prime``
+            and ``loss_cql`` logs without any ground truth: on the LQR data the gap stays below ``lagrange_thresh``
+            from the first steps, so the constraint is slack and α' has no resting point above 0; it falls for as
+            long as the run lasts (LQR exp1, seed 0: α' 0.073 / 0.026 / 0.0074 after 1,000 / 2,000 / 4,000 steps),
+            the penalty fades and CQL drifts towards SAC, so its figures depend on the budget (regret 0.0315 /
+            0.0197 / 0.0099 over seeds 0-4, no plateau). With the fixed weight the objective is stationary and the
+            figures level off (README, "Budgets").
         alpha_init: the initial entropy coefficient (tuned as in SAC).
         loss_function: the critics' loss.
         lr, actor_lr, alpha_lr, alpha_prime_lr, target_tau: Adam's rates for the critics, the actor, the entropy
-            coefficient and α', and SoftUpdate's τ (they replace ``q.lr``, ``q.actor_lr`` and ``q.target_tau`` for
-            this algo). Default the project's 1e-3 and τ = 0.05 for the networks, not the paper's and d3rlpy's 3e-4,
-            1e-4 and 0.005: those are set for 10⁶ updates, and at this project's budgets they leave CQL far from
-            converged (LQR exp1, 500 updates: regret 3.17 against 0.10; README, "Against a peer library").
-            The two multipliers get 1e-2: each is one scalar whose Adam step is about its learning rate, so over a
-            cosine-annealed run of n steps log α and log α' can move by about n·lr/2. At 1e-3 and the tables' 2,000
-            steps that is ~1: on LQR exp1 (seed 0) α' fell only from 1 to 0.43 while the gap stayed below
-            ``lagrange_thresh`` all along (the Lagrangian wants α' → 0 there), so the penalty's weight and the
-            regret were still falling at the end (0.136, 0.102, 0.079, 0.058 at steps 500-2,000). At 1e-2 both
-            level off by mid-run as the annealed rate allows (α' 0.030 at step 1,250, 0.026 at 1,850; regret
-            0.017), readable from a run's own ``alpha`` and ``alpha_prime`` logs without any ground truth. Where the
-            gap stays below ``lagrange_thresh`` (as on the LQR data), α' has no resting point above 0: a longer run
-            takes it further down (0.0074 after 4,000 steps), and CQL drifts towards SAC as the budget grows.
+            coefficient and α' (with ``with_lagrange``), and SoftUpdate's τ (they replace ``q.lr``, ``q.actor_lr``
+            and ``q.target_tau`` for this algo). Default the project's 1e-3 and τ = 0.05 for the networks, not the
+            paper's and d3rlpy's 3e-4, 1e-4 and 0.005: those are set for 10⁶ updates, and at this project's budgets
+            they leave CQL far from converged (LQR exp1, 500 updates: regret 3.17 against 0.10; README, "Against a
+            peer library"). The two multipliers get 1e-2: each is one scalar whose Adam step is about its learning
+            rate, so over a cosine-annealed run of n steps log α and log α' can move by about n·lr/2; at 1e-3 and
+            2,000 steps that is ~1, too little for either to reach where its own update leads it (with the
+            Lagrangian on LQR exp1, α' fell only from 1 to 0.43 in 2,000 steps).
     """
 
     min_q_weight: float = 5.0
     temperature: float = 1.0
     num_random: int = 10
-    with_lagrange: bool = True
+    with_lagrange: bool = False
     lagrange_thresh: float = 10.0
     alpha_init: float = 1.0
     loss_function: str = "l2"
@@ -74,7 +78,8 @@ def build_cql(ctx: AlgoContext) -> Algo:
     rescaled once into ``[−1, 1]ᵐ``, the actor is a TanhNormal on ``[−1, 1]ᵐ`` and the evaluated policy maps its mode
     back to the env's box (without this, on LQR's box [−5, 5]² the uniform actions covered its centre only).
 
-    With ``with_lagrange`` the critics' penalty is ``α'·min_q_weight·(gap − lagrange_thresh)`` with α' =
+    By default the critics' penalty is ``min_q_weight·gap`` with a fixed weight (Kumar et al.'s Gym MuJoCo setting).
+    With ``with_lagrange`` it is ``α'·min_q_weight·(gap − lagrange_thresh)`` with α' =
     exp(log α') (clamped to [0, 1e6]) held fixed in the critics' step, and α' is stepped on the negative of it with
     the gap held fixed (d3rlpy's update, the paper's Lagrangian). TorchRL's ``loss_alpha_prime`` is not used:
     summed with the other losses it would send −α'·∇gap into the critics, cancelling the penalty as α' grows.
