@@ -5,6 +5,8 @@
     python recipes/paper_tables.py --quick            # a smoke version (CI)
     python recipes/paper_tables.py --algos wbrm td3bc --envs lqr_exp1 --seeds 3
     python recipes/paper_tables.py --report-only      # rebuild tables.md and the figures from finished runs
+    python recipes/paper_tables.py --algos cql --envs lqr_exp1 --overrides baselines.cql.with_lagrange=true \
+        --out results/paper_tables_cql_lagrange       # a variant's cells and budget check, every run overridden
 
 The default envs are the paper's three LQR experiments, ``lqr_nondiag`` (an LQR system not in the paper, with
 coupled dynamics and control: ``configs/env/lqr_nondiag.yaml``) and MountainCar. The table budget is
@@ -71,8 +73,9 @@ def available_algos() -> list[str]:
     return sorted(algo_names())
 
 
-def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool) -> list[dict]:
-    """One cell per (env, algorithm); every cell of an env and seed shares one data collection (``data_cache``)."""
+def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool, overrides=()) -> list[dict]:
+    """One cell per (env, algorithm); every cell of an env and seed shares one data collection (``data_cache``).
+    ``overrides`` (``--overrides``) go last on every cell, e.g. ``baselines.cql.with_lagrange=true``."""
     cells = []
     for env in envs:
         extra = []
@@ -81,14 +84,15 @@ def build_cells(envs: list[str], algos: list[str], out: Path, quick: bool) -> li
         for algo in algos:
             cells.append({"env": env, "method": algo, "overrides": [
                 f"env={env}", f"algo={algo}", "logger=none", "plots=false", "checkpoint_every=0",
-                f"data_cache={out / 'data_cache'}", *extra]})
+                f"data_cache={out / 'data_cache'}", *extra, *overrides]})
     return cells
 
 
-def build_budget_cells(envs: list[str], algos: list[str], out: Path, quick: bool, steps: int) -> list[dict]:
+def build_budget_cells(envs: list[str], algos: list[str], out: Path, quick: bool, steps: int,
+                       overrides=()) -> list[dict]:
     """The grid's cells of ``envs`` at a budget of ``steps`` Q steps, evaluated once at the end; they read the grid's
     ``data_cache``, so every budget of a seed trains on the same data."""
-    cells = build_cells(envs, algos, out, quick)
+    cells = build_cells(envs, algos, out, quick, overrides)
     for cell in cells:
         cell["overrides"] = [*cell["overrides"], f"q.steps={steps}", f"q.eval_every={steps}"]
     return cells
@@ -601,6 +605,10 @@ def main() -> None:
                         help="the envs of the budget check (none: skip it); only those also in --envs run")
     parser.add_argument("--budget-steps", nargs="+", type=int, default=None,
                         help=f"the budget check's q.steps (default {BUDGET_CHECK_STEPS}; --quick: 5 20)")
+    parser.add_argument("--overrides", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="recipe overrides for every run, after the table budget, e.g. "
+                             "baselines.cql.with_lagrange=true (use an --out of their own: the tables read every "
+                             "run there)")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default="results/paper_tables")
     parser.add_argument("--report-only", action="store_true",
@@ -621,7 +629,7 @@ def main() -> None:
         launch = dict(jobs=args.jobs, labels=LABELS, launcher=args.launcher, launcher_args=args.launcher_args)
         timing_path = out / "wall_seconds.json"
         timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}
-        cells = build_cells(args.envs, algos, out, args.quick)
+        cells = build_cells(args.envs, algos, out, args.quick, args.overrides)
         todo = _unfinished(cells, seeds, out)
         start = time.perf_counter()
         run_cells(cells, seeds, budget, out, **launch)
@@ -630,7 +638,8 @@ def main() -> None:
         check_envs = [e for e in args.envs if e in (args.budget_envs or [])]
         start, todo = time.perf_counter(), 0
         for steps in (args.budget_steps or ([5, 20] if args.quick else BUDGET_CHECK_STEPS)) if check_envs else []:
-            cells, where = build_budget_cells(check_envs, algos, out, args.quick, steps), budget_check_dir(out) / f"steps{steps}"
+            cells, where = build_budget_cells(check_envs, algos, out, args.quick, steps, args.overrides), \
+                budget_check_dir(out) / f"steps{steps}"
             todo += _unfinished(cells, seeds, where)
             run_cells(cells, seeds, budget, where, **launch)
         if todo:

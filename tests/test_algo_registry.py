@@ -226,6 +226,31 @@ def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path):
         assert results["seed"] == seed and results["algo"] == "brm" and results["config"]["q"]["steps"] == 4
         assert results["study"] == {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "brm"}
     run_cells([cell], [0, 1], budget, tmp_path, launcher="no_such_launcher")  # all done: nothing is launched
+    # a finished run is reused only under the settings it ran with: the launched runs' saved configs equal the
+    # runner's composition (above), and another budget is refused by name, not reported as this one's
+    with pytest.raises(ValueError, match=r"q\.steps: 4 -> 5.*another directory"):
+        run_cells([cell], [0, 1], [*budget, "q.steps=5"], tmp_path, launcher="no_such_launcher")
+
+
+def test_a_finished_run_is_reused_only_under_its_own_settings(tmp_path):
+    """``run_overrides`` reads a finished run back without training, if it ran with the same config; a changed
+    setting that changes a figure is refused by name, one that cannot (threads, plots, the logger) is not."""
+    from torchrl_wbrm.training.runs import compose_recipe_config, run_overrides
+    from torchrl_wbrm.training.trainer import config_as_dict
+
+    overrides = ["algo=brm", "env=lqr_exp1", "q.steps=7", "logger=none", "plots=false"]
+    saved = {"status": "finished", "final": {"regret": 0.5}, "config": config_as_dict(compose_recipe_config(overrides))}
+    (tmp_path / "results.json").write_text(json.dumps(saved))
+    assert run_overrides(overrides, tmp_path)["final"] == {"regret": 0.5}  # read back, not trained
+    assert run_overrides([*overrides, "plots=true", "logger=csv"], tmp_path)["final"] == {"regret": 0.5}
+    with pytest.raises(ValueError, match=r"results\.json holds a finished run with other settings: "
+                                         r"baselines\.cql\.with_lagrange: False -> True"):
+        run_overrides([*overrides, "baselines.cql.with_lagrange=true"], tmp_path)
+    with pytest.raises(ValueError, match=r"q\.steps: 7 -> 8; seed: 0 -> 3"):
+        run_overrides([*overrides, "q.steps=8", "seed=3"], tmp_path)
+    (tmp_path / "results.json").write_text(json.dumps({"status": "finished"}))
+    with pytest.raises(ValueError, match="without the config they ran with"):
+        run_overrides(overrides, tmp_path)
 
 
 def test_the_names_scripts_imported_before_still_import():

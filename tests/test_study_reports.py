@@ -418,3 +418,15 @@ def test_q_accuracy_adopt_takes_one_level_and_breaks_ties_by_run_time():
     assert chosen[:2] == ("step budget", "6000")
     # a level above the base is no candidate; no candidate, no change
     assert q.adopt(_q_records([("activation", "ReLU", 1.05, 30.0)])) is None
+
+
+def test_paper_tables_overrides_go_last_on_every_run():
+    """``--overrides`` reach every cell of the grid and of the budget check, after the cell's own settings (so they
+    win), and every budget-check run keeps its own step budget after them."""
+    out = Path("results/x")
+    lagrange = "baselines.cql.with_lagrange=true"
+    cells = paper_tables.build_cells(["lqr_exp1", "mountain_car"], ["cql", "brm"], out, False, [lagrange])
+    assert len(cells) == 4 and all(c["overrides"][-1] == lagrange for c in cells)
+    assert all(lagrange not in c["overrides"] for c in paper_tables.build_cells(["lqr_exp1"], ["cql"], out, False))
+    budget = paper_tables.build_budget_cells(["lqr_exp1"], ["cql"], out, False, 4000, [lagrange])
+    assert budget[0]["overrides"][-3:] == [lagrange, "q.steps=4000", "q.eval_every=4000"]

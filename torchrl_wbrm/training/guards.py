@@ -181,6 +181,25 @@ def is_continuable(key: str) -> bool:
     return key in CONTINUABLE_KEYS or key.startswith(CONTINUABLE_PREFIXES)
 
 
+#: Keys a finished run's results may be reused under when they differ: none of them changes a figure it reports.
+REUSABLE_KEYS = ("checkpoint_every", "resume", "overwrite", "plots", "threads", "data_cache")
+REUSABLE_PREFIXES = ("logger.",)
+
+
+def check_finished_config(path: Path, saved: dict, now: dict) -> None:
+    """Refuse to reuse a finished run's results (``path``) for a config that differs from the one it ran with, outside
+    :data:`REUSABLE_KEYS` (the logger, plots, threads and where the data are cached): every such key is named with its
+    old and new value. A study that skips its finished runs would otherwise report them as this config's."""
+    refused = {k: v for k, v in changed_keys(saved, now).items()
+               if k not in REUSABLE_KEYS and not k.startswith(REUSABLE_PREFIXES)}
+    if refused:
+        lines = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in refused.items())
+        raise ValueError(
+            f"{path} holds a finished run with other settings: {lines}. Its results are not this config's; write "
+            f"this config's runs to another directory (a study's --out), or delete that run to redo it."
+        )
+
+
 def check_resume_config(path: Path, saved: dict, now: dict, state: dict) -> dict[str, tuple]:
     """Refuse a resume whose config differs from the checkpoint's outside :data:`CONTINUABLE_KEYS` (every such key
     named with its old and new value), or whose ``q.steps`` is below the steps already trained. Returns the

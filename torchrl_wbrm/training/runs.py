@@ -25,6 +25,8 @@ __all__ = [
     "TABLE_QUICK_BUDGET",
     "WEIGHTING_BUDGET",
     "cell_dir",
+    "compose_recipe_config",
+    "finished_results",
     "run_cell",
     "run_cells",
     "run_overrides",
@@ -98,38 +100,63 @@ ROOT = Path(__file__).resolve().parents[2]
 CONFIG_DIR = ROOT / "configs"
 
 
+def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline"):
+    """``configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_wbrm.training.config import register_configs
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name, overrides=[*overrides, "threads=1"])
+
+
+def finished_results(run_dir: str | os.PathLike, cfg) -> dict | None:
+    """The results of the finished run in ``run_dir`` (``results.json``, a diverged run's too), or ``None`` if there
+    is none; refused (:func:`~torchrl_wbrm.training.guards.check_finished_config`) if it ran with other settings than
+    ``cfg``, so that a study never reports a run of another config as this one's."""
+    from torchrl_wbrm.training.guards import check_finished_config
+    from torchrl_wbrm.training.trainer import config_as_dict
+
+    done = Path(run_dir) / "results.json"
+    if not done.is_file():
+        return None
+    results = json.loads(done.read_text())
+    if not isinstance(results.get("config"), dict):
+        raise ValueError(f"{done} holds results without the config they ran with (key 'config'), so they cannot be "
+                         f"told to be this config's; delete that run to redo it.")
+    check_finished_config(done, results["config"], config_as_dict(cfg))
+    return results
+
+
 def run_overrides(
     overrides: list[str], run_dir: str | os.PathLike, *, extra_results: dict | None = None, config_name: str = "wbrm_offline"
 ) -> dict:
     """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
     (with the run's ``wall_seconds``).
 
-    A run whose ``results.json`` exists is not run again (its results are read back, a diverged run's too), and
-    one with only a checkpoint resumes from it, so an interrupted study resumes where it stopped. ``extra_results``
-    are merged into the saved results (e.g. the study cell's labels).
+    A finished run (:func:`finished_results`: its ``results.json`` exists, and it ran with this config) is not run
+    again, and one with only a checkpoint resumes from it, so an interrupted study resumes where it stopped.
+    ``extra_results`` are merged into the saved results (e.g. the study cell's labels).
     """
     import torch
-    from hydra import compose, initialize_config_dir
 
-    from torchrl_wbrm.training.config import register_configs
     from torchrl_wbrm.training.guards import write_json
     from torchrl_wbrm.training.trainer import WBRMTrainer
 
     run_dir = Path(run_dir)
-    done = run_dir / "results.json"
-    if done.is_file():
-        return json.loads(done.read_text())
+    cfg = compose_recipe_config(overrides, config_name)
+    results = finished_results(run_dir, cfg)
+    if results is not None:
+        return results
     start = time.perf_counter()
     torch.set_num_threads(1)
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose(config_name, overrides=[*overrides, "threads=1"])
     # an interrupted cell (a checkpoint, no results) continues; its config must match the checkpoint's
     resume = (run_dir / "checkpoint.pt").is_file()
     results = WBRMTrainer(cfg, run_dir, progress=False, resume=resume).run()
     results.update(extra_results or {})
     results["wall_seconds"] = time.perf_counter() - start
-    write_json(done, results)
+    write_json(run_dir / "results.json", results)
     return results
 
 
@@ -183,7 +210,8 @@ def _launch_cell(cell: dict, seeds: list[int], budget: list[str], out: Path, lab
                  launcher_args: list[str]) -> None:
     from torchrl_wbrm.training.guards import write_json
 
-    todo = [s for s in seeds if not (cell_dir(out, cell, s, labels=labels) / "results.json").is_file()]
+    todo = [s for s in seeds if finished_results(cell_dir(out, cell, s, labels=labels),
+                                                 compose_recipe_config(_overrides(cell, s, budget))) is None]
     if not todo:
         return
     sweep = cell_dir(out, cell, 0, labels=labels).parent

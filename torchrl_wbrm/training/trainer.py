@@ -89,6 +89,12 @@ def _to_config(cfg) -> WBRMConfig:
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
 
 
+def config_as_dict(cfg) -> dict:
+    """``cfg`` (a :class:`WBRMConfig` or a Hydra ``DictConfig`` of one) as the plain dict a run saves under
+    ``"config"`` in its checkpoint and ``results.json``."""
+    return OmegaConf.to_container(OmegaConf.structured(_to_config(cfg)))
+
+
 class WBRMTrainer:
     """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
 
