@@ -1,16 +1,20 @@
 """Scale-out run for real: a two-job Hydra multirun of recipes/wbrm_offline.py through the Ray launcher, on a local
 Ray cluster this test starts (``ray start --head``) and stops, and through submitit's local executor (the job files
-Slurm would run). Tiny budgets (tests/test_recipes.py's); the cluster start is most of the cost.
+Slurm would run), each with the sweep's table over seeds (``recipes/summarise.py``). Tiny budgets (tests/test_recipes.py's);
+the cluster start is most of the cost.
 
 Both launchers are in the dev install (pyproject.toml); without them these tests skip and say so.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import io
 import json
 import math
 import os
 import re
+import runpy
 import shutil
 import signal
 import socket
@@ -22,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_recipes import TINY_LQR, run_recipe
+from tests.test_recipes import ROOT, TINY_LQR, run_recipe
 
 pytestmark = pytest.mark.launchers
 
@@ -51,6 +55,16 @@ def _check_two_results(sweep_dir: Path) -> list[dict]:
         assert r["env"] == "lqr_exp1"
         for key in ("regret", "regret_ci", "return", "q_error_expert", "q_error_behaviour"):
             assert math.isfinite(r["final"][key]), (key, r["final"][key])
+    # the sweep's table over seeds (recipes/summarise.py, as a user runs it after a multirun)
+    out, argv = io.StringIO(), sys.argv
+    sys.argv = ["summarise.py", str(sweep_dir), "--group-by", "ratio.source"]
+    try:
+        with contextlib.redirect_stdout(out):
+            runpy.run_path(str(ROOT / "recipes" / "summarise.py"), run_name="__main__")
+    finally:
+        sys.argv = argv
+    row = [line for line in out.getvalue().splitlines() if line.startswith("| none")][0]
+    assert "| 2 |" in row and "±" in row  # two seeds, a confidence interval
     return results
 
 
