@@ -87,14 +87,34 @@ def peer_train(data_path: str, algo: str, steps: int, seed: int, policy_path: st
 
 
 # ---------------------------------------------------------------------- this project's side
+def _venv_works(python: Path) -> int:
+    """0 if ``python`` imports d3rlpy 2.8.1 and torch 2.13.0, else the check's exit code (negative: a signal)."""
+    return subprocess.run([str(python), "-c", "import d3rlpy, torch; assert d3rlpy.__version__ == '2.8.1' and "
+                                              "torch.__version__.startswith('2.13.0')"],
+                          capture_output=True).returncode
+
+
 def ensure_venv(venv: Path) -> Path:
+    """d3rlpy's own venv: used if it imports d3rlpy and torch at the pinned versions, else built. A venv that exists
+    but fails that check (a broken install: a truncated ``.so`` makes ``import numpy`` die of SIGBUS, which pip's
+    "already satisfied" would not repair) is deleted and rebuilt when it is this script's own (under ``.peer/``), and
+    refused otherwise, naming it."""
     python = venv / "bin" / "python"
-    if python.is_file() and subprocess.run([str(python), "-c", "import d3rlpy, torch; assert d3rlpy.__version__ == "
-                                            "'2.8.1' and torch.__version__.startswith('2.13.0')"]).returncode == 0:
-        return python
+    if python.is_file():
+        code = _venv_works(python)
+        if code == 0:
+            return python
+        if venv.resolve().parent != VENV.parent.resolve():
+            raise SystemExit(f"{venv} exists but its python fails `import d3rlpy, torch` at {PEER_PINS} (exit code "
+                             f"{code}); fix or delete it, or pass another --venv.")
+        print(f"{venv} fails `import d3rlpy, torch` at {PEER_PINS} (exit code {code}): rebuilding it", flush=True)
+        shutil.rmtree(venv)
     venv.parent.mkdir(parents=True, exist_ok=True)
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     subprocess.run([str(python), "-m", "pip", "install", "-q", *PEER_PINS], check=True)
+    code = _venv_works(python)
+    if code:
+        raise SystemExit(f"{venv} was built but fails `import d3rlpy, torch` at {PEER_PINS} (exit code {code}).")
     return python
 
 
@@ -213,7 +233,9 @@ def main(argv=None) -> None:
                                    str(args.seed), str(policy_path)], capture_output=True, text=True,
                                   env={**os.environ, "OMP_NUM_THREADS": "1"})
             if proc.returncode:
-                raise SystemExit(f"d3rlpy {algo} failed:\n{proc.stderr[-4000:]}")
+                how = (f"killed by signal {-proc.returncode}" if proc.returncode < 0
+                       else f"exit code {proc.returncode}")
+                raise SystemExit(f"d3rlpy {algo} failed ({how}, in {peer_python}):\n{proc.stderr[-4000:]}")
             peer = {**json.loads(proc.stdout.strip().splitlines()[-1]), "data_sha256": data_sha}
             record.write_text(json.dumps(peer, indent=1, default=str))
         else:

@@ -1,0 +1,41 @@
+"""``benchmarks/peer_d3rlpy.py``'s own venv: a venv that exists but cannot import d3rlpy is not used as it is (pip's
+"already satisfied" would not repair a truncated library, which made ``import numpy`` die of SIGBUS here), and one
+the script does not own is refused by name. Building a venv needs PyPI, so only the refusals are tested here."""
+from __future__ import annotations
+
+import importlib.util
+import stat
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _peer():
+    spec = importlib.util.spec_from_file_location("peer_d3rlpy", ROOT / "benchmarks" / "peer_d3rlpy.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _fake_venv(root: Path, body: str) -> Path:
+    python = root / "bin" / "python"
+    python.parent.mkdir(parents=True)
+    python.write_text(f"#!/bin/sh\n{body}\n")
+    python.chmod(python.stat().st_mode | stat.S_IEXEC)
+    return root
+
+
+@pytest.mark.parametrize("body, code", [("exit 1", "exit code 1"), ("kill -BUS $$", "exit code -7")])
+def test_a_broken_venv_that_is_not_the_scripts_own_is_refused_by_name(tmp_path, body, code):
+    peer = _peer()
+    venv = _fake_venv(tmp_path / "my-venv", body)
+    with pytest.raises(SystemExit, match=rf"{venv} exists but its python fails `import d3rlpy, torch`.*\({code}\)"):
+        peer.ensure_venv(venv)
+    assert (venv / "bin" / "python").is_file()  # not deleted: it is not the script's own
+
+
+def test_a_working_venv_is_used_as_it_is(tmp_path):
+    venv = _fake_venv(tmp_path / "ok-venv", "exit 0")
+    assert _peer().ensure_venv(venv) == venv / "bin" / "python"
