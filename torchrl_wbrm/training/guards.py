@@ -181,9 +181,14 @@ def is_continuable(key: str) -> bool:
     return key in CONTINUABLE_KEYS or key.startswith(CONTINUABLE_PREFIXES)
 
 
-#: Keys a finished run's results may be reused under when they differ: none of them changes a figure it reports.
-REUSABLE_KEYS = ("checkpoint_every", "resume", "overwrite", "plots", "threads", "data_cache")
+#: Keys a finished run's results may be reused under when they differ: the continuable ones that change no figure a
+#: finished run reports (not the step budget, the evaluation schedule or the evaluation settings).
+REUSABLE_KEYS = tuple(k for k in CONTINUABLE_KEYS if not k.startswith("q."))
 REUSABLE_PREFIXES = ("logger.",)
+
+
+def _describe(changes: dict[str, tuple]) -> str:
+    return "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
 
 
 def check_finished_config(path: Path, saved: dict, now: dict) -> None:
@@ -193,9 +198,8 @@ def check_finished_config(path: Path, saved: dict, now: dict) -> None:
     refused = {k: v for k, v in changed_keys(saved, now).items()
                if k not in REUSABLE_KEYS and not k.startswith(REUSABLE_PREFIXES)}
     if refused:
-        lines = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in refused.items())
         raise ValueError(
-            f"{path} holds a finished run with other settings: {lines}. Its results are not this config's; write "
+            f"{path} holds a finished run with other settings: {_describe(refused)}. Its results are not this config's; write "
             f"this config's runs to another directory (a study's --out), or delete that run to redo it."
         )
 
@@ -209,10 +213,9 @@ def check_resume_config(path: Path, saved: dict, now: dict, state: dict) -> dict
     if "q.steps" in changes and now.get("q", {}).get("lr_schedule", "constant") != "constant":
         refused["q.steps"] = changes["q.steps"]  # the schedule's horizon is the step budget
     if refused:
-        lines = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in refused.items())
         raise ValueError(
             f"Cannot resume from {path}: these settings differ from the checkpoint's and cannot change in a resumed "
-            f"run: {lines}. Only {', '.join(CONTINUABLE_KEYS)} (q.steps upwards, and not with an lr schedule) and "
+            f"run: {_describe(refused)}. Only {', '.join(CONTINUABLE_KEYS)} (q.steps upwards, and not with an lr schedule) and "
             f"the {', '.join(p.rstrip('.') for p in CONTINUABLE_PREFIXES)} settings may change; start a new run for "
             f"anything else."
         )

@@ -120,7 +120,7 @@ class WBRMTrainer:
             path = self.run_dir / CHECKPOINT
             self._resume_sd = read_checkpoint(path)
             self.resume_changes = check_resume_config(
-                path, dict(self._resume_sd["config"]), OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+                path, dict(self._resume_sd["config"]), config_as_dict(self.cfg),
                 self._resume_sd["state"],
             )
         else:
@@ -536,7 +536,7 @@ class WBRMTrainer:
             "final": final[-1] if final else {},
             "flags": ["diverged"],
             "data_seconds": self.data_seconds,
-            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+            "config": config_as_dict(self.cfg),
         }
         write_json(self.run_dir / "results.json", results)
         write_json(self.run_dir / "history.json", self.history)
@@ -561,7 +561,7 @@ class WBRMTrainer:
             },
             "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
             "data_seconds": self.data_seconds,
-            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+            "config": config_as_dict(self.cfg),
         }
         compiled = getattr(self.algo.step, "compiled", None)
         if compiled is not None:  # q.compile: the first compiled steps' wall time, compilation included
@@ -595,7 +595,7 @@ class WBRMTrainer:
             "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
             "data_fingerprint": self.data_fingerprint,
-            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+            "config": config_as_dict(self.cfg),
         }
         if self.ratio_network is not None:
             fitter = self.ratio_fitter.state_dict()
