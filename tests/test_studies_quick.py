@@ -11,14 +11,19 @@ import sys
 from tests.references import ROOT
 
 
-def test_weighting_study_quick(tmp_path):
+def run_study(script: str, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    """Run ``recipes/<script> --quick <args>`` as a user would; fail with its output's tail if it fails."""
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "weighting_study.py"), "--quick", "--jobs", "1", "--out", str(tmp_path),
-         "--first-seed", "3"],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        [sys.executable, str(ROOT / "recipes" / script), "--quick", *args],
+        cwd=ROOT, capture_output=True, text=True, timeout=timeout,
         env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc
+
+
+def test_weighting_study_quick(tmp_path):
+    run_study("weighting_study.py", "--jobs", "1", "--out", str(tmp_path), "--first-seed", "3")
     runs = sorted(p.parent.name for p in tmp_path.rglob("results.json"))
     assert runs and set(runs) == {"seed3"}, runs  # --first-seed 3: the one quick seed is seed 3, not seed 0
     tables = (tmp_path / "tables.md").read_text()
@@ -27,13 +32,8 @@ def test_weighting_study_quick(tmp_path):
 
 
 def test_paper_tables_quick(tmp_path):
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "paper_tables.py"), "--quick", "--algos", "wbrm", "td3bc",
-         "--envs", "lqr_exp1", "mountain_car", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
-        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
-    )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    run_study("paper_tables.py", "--algos", "wbrm", "td3bc", "--envs", "lqr_exp1", "mountain_car", "--out", str(tmp_path),
+              timeout=600)
     tables = (tmp_path / "tables.md").read_text()
     assert "Table 2 (LQR)" in tables and "Table 3 (MountainCarContinuous-v0)" in tables
     assert "| td3bc |" in tables and "| wbrm |" in tables and "85.435" in tables  # the exact optimum row
@@ -52,12 +52,7 @@ def test_paper_tables_quick(tmp_path):
 
 
 def test_ablations_quick(tmp_path):
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "ablations.py"), "--quick", "--jobs", "1", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
-        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
-    )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    run_study("ablations.py", "--jobs", "1", "--out", str(tmp_path))
     tables = (tmp_path / "tables.md").read_text()
     # the default run appears in every block; the KL setting in its own; BRM beside WBRM for behaviour noise
     for block in ("residual x bootstrap", "ratio divergence", "expert noise τ", "expert data size m", "behaviour noise"):
