@@ -291,18 +291,12 @@ def test_summarise_excludes_unfinished_runs(tmp_path, finished, monkeypatch, cap
     assert "| lqr_exp1 | 2 | 1 |" in table and "1 run(s) excluded from the table (1 diverged)" in table
 
 
-# ---------------------------------------------------------------------- every algo, plots on
+# ---------------------------------------------------------------------- every algo has a plot title
 def test_every_algo_has_a_plot_title():
     assert set(LOSS_TITLES) == set(ALGOS)
 
-
-@pytest.mark.parametrize("algo", sorted(set(ALGOS) - {"wbrm"}))
-def test_every_baseline_runs_with_plots(tmp_path, algo):
-    cfg = tiny(algo=algo, plots=True, ratio={"steps": 10}, q={"steps": 10, "eval_every": 10},
-               baselines={"mabo": {"critic_num_cells": [16, 16]}})
-    results = WBRMTrainer(cfg, tmp_path, progress=False).run()
-    assert results["status"] == "finished" and strict_json(tmp_path / "results.json")["algo"] == algo
-    assert (tmp_path / "training_curve.png").stat().st_size > 0 and (tmp_path / "evaluation.png").stat().st_size > 0
+# every algo's run with plots on, through the recipe: tests/test_baselines.py
+# (test_each_algo_writes_results_and_figures_through_the_recipe)
 
 
 # ---------------------------------------------------------------------- config, before any data
