@@ -6,8 +6,8 @@ import os
 import pytest
 import torch
 
-#: The test files that take the longest, slowest first, with their seconds in one ``-n 2 --dist loadfile
-#: --durations=70`` run here (2 cores, 3 December 2026). The README's test command passes
+#: The test files that take the longest, slowest first, each with the sum of its entries among the 70 slowest of one
+#: ``pytest -q -n 2 --dist loadfile --durations=70`` run here (2 cores, 3 December 2026). The README's test command passes
 #: ``--no-loadscope-reorder``, so pytest-xdist hands files out in collection order, and this order makes that the
 #: longest-first rule: while one worker runs test_baselines.py, the other takes the next ones. xdist's own order
 #: (files with the most tests first) left the few-test, minute-long subprocess files for last, one worker running
