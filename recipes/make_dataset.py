@@ -10,72 +10,11 @@
 with their rewards and next observations) and the behaviour's (D's and S^b's episodes together). MountainCar's
 datasets record ``MountainCarContinuous-v0`` as their env; the LQR systems are not gymnasium envs, so theirs record
 the spaces only (evaluate them with this project's LQR envs).
+
+The same recipe is installed as the ``wbrm-make-dataset`` command: the Hydra app is
+:func:`torchrl_wbrm.cli.make_dataset`, its config ``torchrl_wbrm/configs/make_dataset.yaml``.
 """
-from __future__ import annotations
-
-import time
-from pathlib import Path
-
-import hydra
-from hydra.utils import get_original_cwd
-from omegaconf import DictConfig
-
-from torchrl_wbrm.data.tasks import get_task
-from torchrl_wbrm.training.config import register_configs
-
-register_configs()
-
-
-def _write_minari(cfg, out: Path) -> None:
-    from torchrl_wbrm.data.minari_data import transitions_to_episodes, write_minari_dataset
-
-    task = get_task(cfg.env)
-    datasets, behaviour, expert = task.recorded_collections(seed=cfg.seed, storage=cfg.storage)
-    sizes = datasets.sizes()
-    if behaviour.shape[0] != sizes["transitions"] + sizes["behaviour_samples"] or expert.shape[0] != sizes["expert_samples"]:
-        raise RuntimeError(f"The recorded collections ({behaviour.shape[0]} behaviour, {expert.shape[0]} expert "
-                           f"steps) are not the sets' {sizes}.")
-    namespace = cfg.minari_namespace or cfg.env.name
-    kind = cfg.env.kind
-    env_kwargs = task.minari_env_kwargs(behaviour)  # a gymnasium id, or (LQR) the spaces only
-    written = {}
-    for part, data in (("expert", expert), ("behaviour", behaviour)):
-        dataset_id = f"{namespace}/{part}-v0"
-        ds = write_minari_dataset(dataset_id, transitions_to_episodes(data), data_path=out,
-                                  algorithm_name=f"torchrl_wbrm {kind} {part} policy, seed {cfg.seed}",
-                                  description=f"torchrl_wbrm {cfg.env.name} {part} data (recipes/make_dataset.py)",
-                                  **env_kwargs)
-        written[dataset_id] = (ds.total_episodes, ds.total_steps)
-    print(datasets.summary())
-    for dataset_id, (episodes, steps) in written.items():
-        print(f"Minari dataset {dataset_id}: {episodes} episodes, {steps} steps")
-    print(f"saved under the Minari data path {out}")
-
-
-@hydra.main(config_path="../configs", config_name="make_dataset", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    start = time.perf_counter()
-    if cfg.format not in ("torchrl", "minari"):
-        raise ValueError(f"format={cfg.format!r} is not allowed: choose 'torchrl' or 'minari'.")
-    task = get_task(cfg.env)
-    if not task.collects_data:
-        raise ValueError(f"env={cfg.env.name} (env.kind={cfg.env.kind}) reads its datasets; make_dataset collects "
-                         f"the project's own envs.")
-    out = Path(cfg.out)
-    if not out.is_absolute():
-        out = Path(get_original_cwd()) / out
-    if cfg.format == "minari":
-        _write_minari(cfg, out)
-        print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
-        return
-    datasets = task.make_datasets(seed=cfg.seed, storage=cfg.storage)
-    datasets.save(out)
-    print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
-    print(datasets.summary())
-    if "optimal_return" in datasets.metadata:
-        print(f"optimal_return (exact): {datasets.metadata['optimal_return']:.4f}")
-    print(f"saved to {out}")
-
+from torchrl_wbrm.cli import _write_minari, make_dataset as main  # noqa: F401  (_write_minari: used by the tests)
 
 if __name__ == "__main__":
     main()

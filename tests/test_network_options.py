@@ -141,7 +141,7 @@ def _trainer(tmp_path, *overrides, resume=False):
     from torchrl_wbrm.training import WBRMTrainer, register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=[
             "env.lqr_data.behaviour_episodes=60", "env.lqr_data.expert_episodes=30", "env.lqr_data.parallel_envs=30",
             "ratio.steps=10", "ratio.eval_every=5", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
@@ -203,14 +203,14 @@ def _compose(*overrides):
     from torchrl_wbrm.training import register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
         return compose("wbrm_offline", overrides=list(overrides))
 
 
 def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
     import yaml
 
-    mc_defaults = yaml.safe_load((ROOT / "configs" / "env_defaults" / "mountain_car.yaml").read_text())
+    mc_defaults = yaml.safe_load((ROOT / "torchrl_wbrm" / "configs" / "env_defaults" / "mountain_car.yaml").read_text())
     mc = _compose("env=mountain_car")
     for section, values in mc_defaults.items():
         for key, value in values.items():

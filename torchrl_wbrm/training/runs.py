@@ -97,11 +97,11 @@ CONVERGENCE_QUICK_BUDGET = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", 
 LABELS = ("block", "env", "setting", "method")
 
 ROOT = Path(__file__).resolve().parents[2]
-CONFIG_DIR = ROOT / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"  # torchrl_wbrm/configs (torchrl_wbrm.configs.CONFIG_DIR)
 
 
 def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline"):
-    """``configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
+    """``torchrl_wbrm/configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs
@@ -132,7 +132,7 @@ def finished_results(run_dir: str | os.PathLike, cfg) -> dict | None:
 def run_overrides(
     overrides: list[str], run_dir: str | os.PathLike, *, extra_results: dict | None = None, config_name: str = "wbrm_offline"
 ) -> dict:
-    """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
+    """Compose ``torchrl_wbrm/configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
     (with the run's ``wall_seconds``).
 
     A finished run (:func:`finished_results`: its ``results.json`` exists, and it ran with this config) is not run

@@ -1,0 +1,120 @@
+"""The recipes' command-line entry points (Hydra apps), installed with the package.
+
+    wbrm-offline [overrides]              # = python recipes/wbrm_offline.py [overrides] = python -m torchrl_wbrm
+    wbrm-make-dataset [overrides]         # = python recipes/make_dataset.py [overrides]
+
+Both compose their config from the YAML shipped in the package (:data:`torchrl_wbrm.configs.CONFIG_DIR`), so they
+run from any directory after ``pip install``; the scripts under ``recipes/`` in a clone call these same functions.
+Run directories and datasets are written relative to the directory the command is started in.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_original_cwd
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_wbrm.configs import CONFIG_DIR
+from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.training import WBRMTrainer, register_configs, validate_config
+from torchrl_wbrm.training.guards import RunInterrupted, write_json
+from torchrl_wbrm.training.logging import make_logger
+from torchrl_wbrm.training.reporting import summarise
+
+__all__ = ["wbrm_offline", "make_dataset"]
+
+register_configs()
+
+
+@hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")
+def wbrm_offline(cfg: DictConfig) -> None:
+    """Deep Weighted Bellman Residual Minimization, offline: stage 1 fits the density ratio ŵ, stage 2 fits Q*.
+
+    Writes results.json, history.json, training_curve.png, evaluation.png, logs/ and checkpoint.pt in the run
+    directory.
+    """
+    start = time.perf_counter()
+    validate_config(OmegaConf.to_object(cfg))  # every value, before any data are collected
+    run_dir = Path(cfg.resume) if cfg.resume else Path(HydraConfig.get().runtime.output_dir)
+    try:
+        trainer = WBRMTrainer(cfg, run_dir, logger=None, resume=bool(cfg.resume))
+        trainer.logger = make_logger(
+            cfg.logger, run_dir, f"wbrm_{cfg.env.name}_seed{cfg.seed}", OmegaConf.to_container(cfg, resolve=True)
+        )
+        results = trainer.run()
+    except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
+        if (run_dir / "checkpoint.pt").is_file():
+            print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
+                  f"python recipes/wbrm_offline.py resume={run_dir}", file=sys.stderr)
+        else:
+            print(f"Interrupted before the first checkpoint; no checkpoint was written to {run_dir}.", file=sys.stderr)
+        sys.exit(130)
+    except RunInterrupted as err:
+        print(err, file=sys.stderr)
+        sys.exit(err.exit_code)
+    results["wall_seconds"] = time.perf_counter() - start
+    write_json(run_dir / "results.json", results)
+    if results.get("status") == "diverged":
+        print(results["diverged"]["message"], file=sys.stderr)
+        print(f"run directory: {run_dir} (results.json has status 'diverged'; checkpoint.pt is the last finite state)",
+              file=sys.stderr)
+        sys.exit(2)
+    print(summarise(results))
+    print(f"run directory: {run_dir}")
+
+
+def _write_minari(cfg, out: Path) -> None:
+    """``format=minari``: the expert's and the behaviour's collections as two Minari datasets under ``out``."""
+    from torchrl_wbrm.data.minari_data import transitions_to_episodes, write_minari_dataset
+
+    task = get_task(cfg.env)
+    datasets, behaviour, expert = task.recorded_collections(seed=cfg.seed, storage=cfg.storage)
+    sizes = datasets.sizes()
+    if behaviour.shape[0] != sizes["transitions"] + sizes["behaviour_samples"] or expert.shape[0] != sizes["expert_samples"]:
+        raise RuntimeError(f"The recorded collections ({behaviour.shape[0]} behaviour, {expert.shape[0]} expert "
+                           f"steps) are not the sets' {sizes}.")
+    namespace = cfg.minari_namespace or cfg.env.name
+    kind = cfg.env.kind
+    env_kwargs = task.minari_env_kwargs(behaviour)  # a gymnasium id, or (LQR) the spaces only
+    written = {}
+    for part, data in (("expert", expert), ("behaviour", behaviour)):
+        dataset_id = f"{namespace}/{part}-v0"
+        ds = write_minari_dataset(dataset_id, transitions_to_episodes(data), data_path=out,
+                                  algorithm_name=f"torchrl_wbrm {kind} {part} policy, seed {cfg.seed}",
+                                  description=f"torchrl_wbrm {cfg.env.name} {part} data (recipes/make_dataset.py)",
+                                  **env_kwargs)
+        written[dataset_id] = (ds.total_episodes, ds.total_steps)
+    print(datasets.summary())
+    for dataset_id, (episodes, steps) in written.items():
+        print(f"Minari dataset {dataset_id}: {episodes} episodes, {steps} steps")
+    print(f"saved under the Minari data path {out}")
+
+
+@hydra.main(config_path=str(CONFIG_DIR), config_name="make_dataset", version_base="1.3")
+def make_dataset(cfg: DictConfig) -> None:
+    """Collect an offline dataset (D, S^b, S^e) with torchrl's Collector, save it and print what it holds."""
+    start = time.perf_counter()
+    if cfg.format not in ("torchrl", "minari"):
+        raise ValueError(f"format={cfg.format!r} is not allowed: choose 'torchrl' or 'minari'.")
+    task = get_task(cfg.env)
+    if not task.collects_data:
+        raise ValueError(f"env={cfg.env.name} (env.kind={cfg.env.kind}) reads its datasets; make_dataset collects "
+                         f"the project's own envs.")
+    out = Path(cfg.out)
+    if not out.is_absolute():
+        out = Path(get_original_cwd()) / out
+    if cfg.format != "torchrl":  # format=minari
+        _write_minari(cfg, out)
+        print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
+        return
+    datasets = task.make_datasets(seed=cfg.seed, storage=cfg.storage)
+    datasets.save(out)
+    print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
+    print(datasets.summary())
+    if "optimal_return" in datasets.metadata:
+        print(f"optimal_return (exact): {datasets.metadata['optimal_return']:.4f}")
+    print(f"saved to {out}")
