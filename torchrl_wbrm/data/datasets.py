@@ -31,6 +31,7 @@ __all__ = [
     "collect_transitions",
     "split_by_episode",
     "make_replay_buffer",
+    "min_behaviour_episodes",
     "FORMAT_VERSION",
     "TRANSITION_KEYS",
     "PairedSampler",
@@ -134,6 +135,23 @@ def split_by_episode(
     return data[~in_part], data[in_part]
 
 
+def min_behaviour_episodes(ratio_fraction: float) -> int:
+    """The fewest behaviour episodes :meth:`OfflineDatasets.from_behaviour_and_expert` can split with
+    ``ratio_fraction``: ``S^b`` takes at least one, and ``D`` keeps at least two (a trainer splits ``D`` by episode
+    again, into its training and held-out sets). 4 for the default 0.5.
+
+    Examples:
+        >>> min_behaviour_episodes(0.5)
+        4
+    """
+    if not 0.0 < ratio_fraction < 1.0:
+        raise ValueError(f"ratio_fraction must lie in (0, 1), got {ratio_fraction}.")
+    n = 3
+    while n - min(max(1, round(ratio_fraction * n)), n - 1) < 2:
+        n += 1
+    return n
+
+
 def make_replay_buffer(
     data: TensorDictBase,
     *,
@@ -216,9 +234,24 @@ class OfflineDatasets:
         storage: str = "lazy",
         scratch_dir=None,
     ) -> "OfflineDatasets":
-        """Split ``behaviour`` by episode into ``D`` and ``S^b`` (``ratio_fraction`` of its episodes)."""
-        transitions, behaviour_samples = split_by_episode(behaviour, ratio_fraction, generator=generator)
+        """Split ``behaviour`` by episode into ``D`` and ``S^b`` (``ratio_fraction`` of its episodes).
+
+        ``behaviour`` must hold at least :func:`min_behaviour_episodes` episodes; fewer raise a ``ValueError`` naming
+        the dataset (``metadata["behaviour_dataset"]``, where a reader records it) and the minimum.
+        """
         meta = dict(metadata or {})
+        if "episode" in behaviour.keys():
+            episodes = int(torch.unique(behaviour["episode"]).numel())
+            needed = min_behaviour_episodes(ratio_fraction)
+            if episodes < needed:
+                name = meta.get("behaviour_dataset")
+                what = f"The behaviour dataset {name!r}" if name else "The behaviour data"
+                raise ValueError(
+                    f"{what} holds {episodes} episode(s); at least {needed} are needed (with ratio_fraction="
+                    f"{ratio_fraction}: S^b takes at least one episode and D keeps at least two, which the trainer "
+                    f"splits into its training and held-out sets). Use a behaviour dataset with more episodes."
+                )
+        transitions, behaviour_samples = split_by_episode(behaviour, ratio_fraction, generator=generator)
         meta.setdefault("ratio_fraction", ratio_fraction)
         return cls.from_tensordicts(
             transitions,

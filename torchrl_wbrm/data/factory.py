@@ -55,6 +55,12 @@ def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", s
     return get_task(to_dataclass(EnvConfig, env)).make_datasets(seed=seed, storage=storage, scratch_dir=scratch_dir)
 
 
+def saved_dataset_dir(task) -> str | None:
+    """The saved dataset a task's data config points to (``dataset_dir``, e.g. ``env.lqr_data.dataset_dir``), or
+    ``None`` when its data are collected."""
+    return getattr(getattr(task, "data_config", None), "dataset_dir", None) or None
+
+
 def _check_cache_entry(target: Path, request: dict, expected: dict[str, int]) -> OfflineDatasets:
     """Load a cache entry (every file verified by :meth:`OfflineDatasets.load`) and check that its metadata match
     the request (the whole env config and the seed) and its sizes the config's; raises ``ValueError`` naming what
@@ -75,7 +81,10 @@ def _check_cache_entry(target: Path, request: dict, expected: dict[str, int]) ->
 def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.PathLike) -> OfflineDatasets:
     """:func:`make_offline_datasets`, saved under ``cache_dir`` and loaded on later calls with the same env and seed.
 
-    The key is a hash of the whole env config and the seed, so any change of data settings makes new data. Before
+    Data already on disk are not cached: a Minari pair, or a dataset saved with :meth:`OfflineDatasets.save` and named by
+    the env config (``env.lqr_data.dataset_dir``), is read and verified where it is, so a regenerated dataset is always
+    the one trained on. The key is a hash of the whole env config and the seed, so any change of data settings makes
+    new data. Before
     an entry is used, every file is verified against the checksums, sizes, dtypes and shapes in its
     ``metadata.json`` (:meth:`OfflineDatasets.load`), and its recorded request (env config and seed) and sizes are
     compared with this call's. A bad entry is never patched: it is rebuilt in a private folder, swapped into place
@@ -85,7 +94,9 @@ def cached_offline_datasets(env: EnvConfig, *, seed: int, cache_dir: str | os.Pa
     env = to_dataclass(EnvConfig, env)
     task = get_task(env)
     expected = task.expected_sizes()
-    if expected is None:  # already on disk (Minari), verified by its reader: no second copy
+    if expected is None or saved_dataset_dir(task) is not None:
+        # already on disk (Minari, or a saved dataset such as env.lqr_data.dataset_dir), verified by its reader
+        # against its own checksums on every load: no second copy, which would go stale when the data are remade
         return task.make_datasets(seed=seed)
     request = json.loads(json.dumps({"env": asdict(env), "seed": seed}, sort_keys=True, default=str))
     key = hashlib.sha1(json.dumps(request, sort_keys=True).encode()).hexdigest()

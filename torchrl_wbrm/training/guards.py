@@ -1,6 +1,11 @@
 """What keeps a run honest: safe run directories, resume checks, divergence detection, signals, strict JSON.
 
-* :func:`check_run_dir` — a new run refuses a directory holding a checkpoint or results unless ``overwrite=true``.
+* :func:`claim_run_dir` — one run at a time per run directory: an exclusive advisory lock on the directory itself,
+  held for the run (nothing is written for it; the kernel drops it when the process ends).
+* :func:`check_run_dir` — a new run refuses a directory holding a checkpoint or results unless ``overwrite=true``,
+  which removes every output of the earlier run (:func:`clear_run_outputs`).
+* :class:`RunDirGuard` — the recipes' Hydra callback: the config, the run directory and a resume are checked (and the
+  directory claimed) before Hydra writes its ``.hydra/`` record, so a refused command changes nothing on disk.
 * :func:`read_checkpoint` / :func:`check_resume_config` — a corrupted checkpoint is a clear error naming the file;
   a resumed config may differ from the checkpoint's only in :data:`CONTINUABLE_KEYS`, and ``q.steps`` may only
   grow (never below the steps already trained).
@@ -11,27 +16,41 @@
 """
 from __future__ import annotations
 
+import contextlib
+import errno
 import math
 import os
 import pickle
+import shutil
 import signal
 import threading
 import zipfile
 from pathlib import Path
 
 import torch
+from hydra.experimental.callback import Callback
+
+try:  # advisory locks (POSIX); without them a run directory is not locked
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
 
 from torchrl_wbrm.data.tasks import get_task
 
 __all__ = [
     "CONTINUABLE_KEYS",
     "CONTINUABLE_PREFIXES",
+    "RunDirClaim",
+    "RunDirGuard",
+    "RunDirInUse",
     "RunInterrupted",
     "StopSignals",
     "TrainingDiverged",
     "changed_keys",
     "check_resume_config",
     "check_run_dir",
+    "claim_run_dir",
+    "clear_run_outputs",
     "first_non_finite",
     "json_safe",
     "non_finite_parameter",
@@ -73,17 +92,27 @@ class TrainingDiverged(RuntimeError):
 class RunInterrupted(Exception):
     """SIGINT or SIGTERM stopped the run after a checkpoint; ``signal_name``, ``stage``, ``step``, ``run_dir``."""
 
-    def __init__(self, signum: int, stage: str, step: int, run_dir: Path):
+    def __init__(self, signum: int, stage: str, step: int, run_dir: Path, *, during: str | None = None):
         self.signum, self.stage, self.step, self.run_dir = signum, stage, step, Path(run_dir)
         self.signal_name = signal.Signals(signum).name
+        self.during = during
+        where = f"during the {during} " if during else ""
         super().__init__(
-            f"{self.signal_name} received: stopped in stage {stage!r} at step {step}, checkpoint written to "
+            f"{self.signal_name} received: stopped {where}in stage {stage!r} at step {step}, checkpoint written to "
             f"{self.run_dir / CHECKPOINT}. Resume with: python recipes/wbrm_offline.py resume={self.run_dir}"
         )
 
     @property
     def exit_code(self) -> int:
         return 128 + self.signum
+
+
+class StopNow(Exception):
+    """A signal interrupted a :meth:`StopSignals.immediately` block; ``signum`` is the signal."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"{signal.Signals(signum).name} received")
 
 
 class StopSignals:
@@ -99,6 +128,7 @@ class StopSignals:
     def __init__(self) -> None:
         self.received: int | None = None
         self._previous: dict = {}
+        self._immediate = False
 
     def _handle(self, signum, frame) -> None:
         if self.received is not None:  # a second signal: the previous behaviour (KeyboardInterrupt, or exit)
@@ -109,6 +139,22 @@ class StopSignals:
                 raise KeyboardInterrupt
             return
         self.received = signum
+        if self._immediate:  # inside immediately(): stop now, not at the next step boundary
+            self._immediate = False
+            raise StopNow(signum)
+
+    @contextlib.contextmanager
+    def immediately(self):
+        """A block a signal interrupts at once (:class:`StopNow`), for work that can be abandoned and redone, such as
+        an evaluation (it changes no training state): a long evaluation stops promptly instead of looking hung. A
+        signal received before the block raises at its start."""
+        if self.received is not None:
+            raise StopNow(self.received)
+        self._immediate = True
+        try:
+            yield
+        finally:
+            self._immediate = False
 
     def __enter__(self) -> "StopSignals":
         if threading.current_thread() is threading.main_thread():
@@ -123,18 +169,120 @@ class StopSignals:
         self._previous = {}
 
 
-def check_run_dir(run_dir: Path, *, overwrite: bool) -> None:
-    """Refuse a new run into a directory that already holds a run (unless ``overwrite``, which removes those files)."""
+#: What a run writes into its directory (besides Hydra's record): removed by ``overwrite=true`` so that no output of
+#: the earlier run (its CSV logs above all, which torchrl's ``CSVLogger`` would append to) outlives it.
+RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", "results.json", "results.json.tmp", "history.json", "history.json.tmp",
+               "training_curve.png", "evaluation.png", "logs", "wandb", "torch_compile_cache")
+#: Hydra's record of the command that made the run (``.hydra/``) and its job log (``<job name>.log``).
+HYDRA_RECORD = (".hydra",)
+
+
+def holds_run(run_dir: Path) -> list[str]:
+    """The files of :data:`RUN_FILES` (and ``history.json``) in ``run_dir``, if any of :data:`RUN_FILES` is there."""
     present = [name for name in (*RUN_FILES, "history.json") if (Path(run_dir) / name).exists()]
-    if not present or not any(name in RUN_FILES for name in present):
+    return present if any(name in RUN_FILES for name in present) else []
+
+
+def clear_run_outputs(run_dir: Path, *, hydra_record: bool = False) -> list[str]:
+    """Remove the earlier run's outputs from ``run_dir`` (:data:`RUN_OUTPUTS`; with ``hydra_record`` also its
+    ``.hydra/`` record and Hydra job logs ``*.log``); other files are left alone. Returns what was removed."""
+    run_dir = Path(run_dir)
+    names = list(RUN_OUTPUTS)
+    if hydra_record:
+        names += [*HYDRA_RECORD, *(p.name for p in run_dir.glob("*.log") if p.is_file())]
+    removed = []
+    for name in names:
+        path = run_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        else:
+            continue
+        removed.append(name)
+    return removed
+
+
+def check_run_dir(run_dir: Path, *, overwrite: bool, remove: bool = True) -> None:
+    """Refuse a new run into a directory that already holds a run, unless ``overwrite`` (then, with ``remove``,
+    every output of the earlier run is removed: :func:`clear_run_outputs`)."""
+    present = holds_run(run_dir)
+    if not present:
         return
     if not overwrite:
         raise FileExistsError(
             f"{run_dir} already holds a run ({', '.join(present)}). Continue it with resume={run_dir}, choose another "
             f"directory, or pass overwrite=true to replace it."
         )
-    for name in present:
-        (Path(run_dir) / name).unlink()
+    if remove:
+        clear_run_outputs(run_dir)
+
+
+class RunDirInUse(RuntimeError):
+    """Another run holds the run directory (:func:`claim_run_dir`)."""
+
+
+class RunDirClaim:
+    """An exclusive claim on a run directory: ``fcntl.flock`` on the directory's own file descriptor.
+
+    Nothing is written for it, and the kernel drops it when the process ends, so a killed run leaves no stale lock.
+    Released by :meth:`release` (or when this object is collected).
+    """
+
+    def __init__(self, path: Path, fd: int | None) -> None:
+        self.path, self._fd = Path(path), fd
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def release(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None and fd >= 0:
+            os.close(fd)  # closing the descriptor drops its lock
+
+    def __del__(self) -> None:
+        self.release()
+
+    def __repr__(self) -> str:
+        return f"RunDirClaim({str(self.path)!r}, held={self.held})"
+
+
+def claim_run_dir(run_dir: str | os.PathLike) -> RunDirClaim:
+    """Claim the existing directory ``run_dir`` for one run, or raise :class:`RunDirInUse` if another run (in this
+    process or another) holds it. Two runs can then never write one directory: the claim is taken before the
+    directory is checked for an earlier run and held until the run ends."""
+    path = Path(run_dir)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    if fcntl is None:  # pragma: no cover - no advisory locks on this platform
+        os.close(fd)
+        return RunDirClaim(path, -1)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        os.close(fd)
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise RunDirInUse(
+                f"{path} is in use by another run (it holds the directory's lock until it ends). Wait for that run "
+                f"to end, or choose another directory (hydra.run.dir=...)."
+            ) from err
+        return RunDirClaim(path, -1)  # a file system without flock: unlocked, as before
+    return RunDirClaim(path, fd)
+
+
+#: Claims taken before a run's trainer exists (by :class:`RunDirGuard`), handed to it by :func:`take_claim`.
+_HANDED_OVER: dict[str, RunDirClaim] = {}
+
+
+def hand_over(claim: RunDirClaim) -> None:
+    """Keep ``claim`` for the trainer of the same run directory in this process (:func:`take_claim`)."""
+    _HANDED_OVER[os.path.realpath(claim.path)] = claim
+
+
+def take_claim(run_dir: str | os.PathLike) -> RunDirClaim | None:
+    """The claim :func:`hand_over` kept for ``run_dir`` (once), or ``None``."""
+    claim = _HANDED_OVER.pop(os.path.realpath(run_dir), None)
+    return claim if claim is not None and claim.held else None
 
 
 def read_checkpoint(path: Path) -> dict:
@@ -321,6 +469,27 @@ def check_device(device: str, key: str = "device") -> None:
         raise ValueError(f"{key}={device!r}: only cpu, cuda and mps devices are supported.")
 
 
+def check_logger(logger_cfg, key: str = "logger") -> None:
+    """Refuse, before any data are collected, a wandb setting wandb itself would refuse when the run starts: the
+    project name (checked by ``wandb.Settings``, so the rule is wandb's own: no ``/ \\ # ? % :``, at most 128
+    characters) and the group."""
+    if getattr(logger_cfg, "backend", None) != "wandb":
+        return
+    try:
+        import wandb
+    except ImportError as err:
+        raise ValueError(f"{key}.backend='wandb' needs the wandb package (pip install wandb), which is not "
+                         f"installed.") from err
+    for name in ("project", "group"):
+        value = getattr(logger_cfg, name, None)
+        if value is None:
+            continue
+        try:
+            wandb.Settings(**{"run_group" if name == "group" else name: str(value)})
+        except Exception as err:  # noqa: BLE001 (wandb's UsageError or pydantic's ValidationError)
+            raise ValueError(f"{key}.{name}={value!r} is refused by wandb: {err}") from err
+
+
 def validate_run_settings(cfg) -> None:
     """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
     data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports."""
@@ -342,4 +511,142 @@ def validate_run_settings(cfg) -> None:
     if cfg.q.maximiser == "sampled" and not cfg.q.num_action_samples >= 1:
         raise ValueError(f"q.num_action_samples must be >= 1, got {cfg.q.num_action_samples!r}.")
     check_device(cfg.device)
+    check_logger(cfg.logger)
     get_task(cfg.env).validate()  # the env's data settings, and what its ground truth supports
+
+
+def _task_config(config):
+    """The run's own config (without the ``hydra`` node) as a :class:`~torchrl_wbrm.training.config.WBRMConfig`."""
+    from omegaconf import OmegaConf
+
+    task = OmegaConf.masked_copy(config, [k for k in config.keys() if k != "hydra"])
+    return OmegaConf.to_object(OmegaConf.merge(_schema(), task))
+
+
+def _schema():
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    return OmegaConf.structured(WBRMConfig)
+
+
+def _set_run_dir(config, run_dir: Path) -> None:
+    from omegaconf import open_dict, read_write
+
+    with read_write(config.hydra), open_dict(config.hydra):
+        config.hydra.run.dir = str(run_dir)
+
+
+def _unique_dir(path: Path) -> Path:
+    """Create ``path`` (or ``path_1``, ``path_2``, ... if it exists) with one exclusive ``mkdir`` each: two runs that
+    start in the same second get directories of their own."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for i in range(1000):
+        candidate = path if i == 0 else path.with_name(f"{path.name}_{i}")
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"Could not create a fresh run directory next to {path} (1,000 of them exist).")
+
+
+def check_run_request(cfg, run_dir: Path, *, resume: bool,
+                      claim: RunDirClaim | None = None) -> tuple[RunDirClaim, dict | None]:
+    """Everything that can refuse a run in ``run_dir`` before it starts, with nothing written: the directory is
+    claimed (:func:`claim_run_dir`, unless ``claim`` is this run's already), then a resume's checkpoint is read and
+    its config compared (:func:`check_resume_config`), or a new run's directory checked for an earlier run
+    (:func:`check_run_dir`, nothing removed yet). Returns the claim (released again if the run is refused) and the
+    checkpoint read (``None`` for a new run)."""
+    from torchrl_wbrm.training.trainer import config_as_dict
+
+    run_dir = Path(run_dir)
+    path = run_dir / CHECKPOINT
+    if resume and not path.is_file():
+        read_checkpoint(path)  # FileNotFoundError naming the directory; nothing is created
+    claim = claim or claim_run_dir(run_dir)
+    sd = None
+    try:
+        if resume:
+            sd = read_checkpoint(path)
+            check_resume_config(path, dict(sd["config"]), config_as_dict(cfg), sd["state"])
+        else:
+            check_run_dir(run_dir, overwrite=cfg.overwrite, remove=False)
+    except BaseException:
+        claim.release()
+        raise
+    return claim, sd
+
+
+class RunDirGuard(Callback):
+    """The recipes' Hydra callback (``hydra.callbacks.run_dir_guard``): a run request is checked before Hydra writes
+    anything, so a refused command leaves the disk as it was (no ``.hydra/`` record rewritten, no empty dated
+    directory under ``outputs/``).
+
+    In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
+
+    * the config is validated (:func:`~torchrl_wbrm.training.config.validate_config`);
+    * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
+      a checkpoint whose config this one may continue, and ``X`` is claimed;
+    * a new run: the default dated directory is created with an exclusive ``mkdir`` (``_1``, ``_2``, ... when two
+      runs start in the same second), a given ``hydra.run.dir`` is claimed and must not hold a run unless
+      ``overwrite=true``, which then removes the earlier run's outputs and its Hydra record.
+
+    The claim is handed to the run's :class:`~torchrl_wbrm.training.WBRMTrainer` (:func:`take_claim`), which holds it
+    until the run ends. A refusal exits (``SystemExit``, status 1) with the reason; Hydra would only warn about an
+    exception raised by a callback.
+    """
+
+    def on_run_start(self, config, **kwargs) -> None:
+        try:
+            self.check(config)
+        except (ValueError, TypeError, KeyError, OSError, RuntimeError) as err:
+            raise SystemExit(f"Refused (nothing was written): {err}") from err
+
+    @staticmethod
+    def check(config) -> RunDirClaim:
+        """The checks of :meth:`on_run_start` on a composed config (with its ``hydra`` node); returns the claim."""
+        from omegaconf import OmegaConf
+
+        from torchrl_wbrm.training.config import validate_config
+
+        cfg = _task_config(config)
+        validate_config(cfg)
+        raw_dir = OmegaConf.to_container(config.hydra.run, resolve=False)["dir"]
+        dated = isinstance(raw_dir, str) and "${now:" in raw_dir
+        if cfg.resume:
+            run_dir = Path(cfg.resume)
+            given = Path(str(config.hydra.run.dir))
+            if not dated and given.resolve() != run_dir.resolve():
+                raise ValueError(
+                    f"resume={cfg.resume} continues the run in {run_dir}, but hydra.run.dir={given} would put this "
+                    f"command's Hydra record elsewhere; drop hydra.run.dir (a resume runs in its own directory)."
+                )
+            claim, _ = check_run_request(cfg, run_dir, resume=True)
+        else:
+            run_dir = Path(str(config.hydra.run.dir))
+            if dated:  # a fresh directory of its own, even for two runs started in the same second
+                run_dir = _unique_dir(run_dir)
+                claim = claim_run_dir(run_dir)
+            else:
+                created = not run_dir.exists()
+                run_dir.mkdir(parents=True, exist_ok=True)
+                try:
+                    claim, _ = check_run_request(cfg, run_dir, resume=False)
+                except BaseException:
+                    if created:
+                        _remove_empty(run_dir)
+                    raise
+                if cfg.overwrite and holds_run(run_dir):  # the earlier run goes, record and logs too
+                    clear_run_outputs(run_dir, hydra_record=True)
+        _set_run_dir(config, run_dir)
+        hand_over(claim)
+        return claim
+
+
+def _remove_empty(path: Path) -> None:
+    try:
+        path.rmdir()
+    except OSError:
+        pass

@@ -13,7 +13,7 @@ def _n(value, spec: str) -> str:
 
 def summarise(results: dict) -> str:
     """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar), and any
-    flag (a diverged run, a Q̂ blow-up)."""
+    flag (a diverged run, a Q̂ blow-up, a collapsed stage 1)."""
     f = results.get("final", {})
     w = results.get("weights", {})
     algo = results.get("algo", "wbrm")
@@ -56,6 +56,13 @@ def summarise(results: dict) -> str:
         lines.append(
             f"FLAG q_blow_up: |{scale['figure']}| = {_n(scale['max_abs_q_mean'], '.4g')} is more than "
             f"{_n(scale['factor'], 'g')} x r_max/(1 - gamma) = {_n(scale['bound'], '.4g')}: Q̂ has blown up."
+        )
+    check = results.get("ratio", {}).get("check") or {}
+    if check.get("collapse"):
+        lines.append(
+            "FLAG ratio_collapse: stage 1 failed: " + "; ".join(check.get("reasons", [])) + ". The stored weights "
+            "carry no information (ŵ is at its lower bound on " + _n(100 * check.get("at_lower_bound", 0), ".0f")
+            + "% of D); lower ratio.lr or check the data (ratio.source=none runs the unweighted method on purpose)."
         )
     if "wall_seconds" in results:
         lines.append(f"wall time {_n(results['wall_seconds'], '.1f')} s (data {_n(results.get('data_seconds', 0), '.1f')} s)")

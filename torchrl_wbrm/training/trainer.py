@@ -47,15 +47,19 @@ from torchrl_wbrm.training.logging import configure_console, log_run_summary
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.guards import (
+    RunDirClaim,
     RunInterrupted,
+    StopNow,
     StopSignals,
     TrainingDiverged,
-    check_resume_config,
+    changed_keys,
     check_run_dir,
+    check_run_request,
+    claim_run_dir,
     first_non_finite,
     json_safe,
     non_finite_parameter,
-    read_checkpoint,
+    take_claim,
     write_json,
 )
 
@@ -106,25 +110,47 @@ class WBRMTrainer:
         logger: a torchrl ``Logger`` (or ``None``).
         resume: continue from ``run_dir/checkpoint.pt``.
         progress: show tqdm bars.
+
+    A trainer claims ``run_dir`` (:func:`~torchrl_wbrm.training.guards.claim_run_dir`) before it looks into it and
+    holds the claim until :meth:`run` ends: a second trainer or recipe run on the same directory, in this process or
+    another, is refused (:class:`~torchrl_wbrm.training.guards.RunDirInUse`). A refused run or resume changes
+    nothing on disk (a resume of a directory that does not exist creates none).
     """
 
     def __init__(self, cfg, run_dir: str | os.PathLike, *, logger=None, resume: bool = False, progress: bool = True):
+        self._claim: RunDirClaim | None = None
         self.cfg: WBRMConfig = _to_config(cfg)
         validate_config(self.cfg)
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        # before any data are collected: the checkpoint is read and the config compared (resume), or the directory
-        # is checked for an earlier run (a new run never overwrites one without overwrite=true)
-        self._resume_sd, self.resume_changes = None, {}
+        # before any data are collected: the directory is claimed, then the checkpoint is read and the config
+        # compared (resume), or the directory is checked for an earlier run (a new run never overwrites one without
+        # overwrite=true); a refusal leaves the disk as it was
+        self.resume_changes = {}
+        if not resume:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._claim, self._resume_sd = check_run_request(self.cfg, self.run_dir, resume=resume,
+                                                         claim=take_claim(self.run_dir))
+        try:
+            self._init(resume, logger, progress)
+        except BaseException:
+            self.release()
+            raise
+
+    def release(self) -> None:
+        """Release the claim on the run directory (:meth:`run` takes it again)."""
+        if self._claim is not None:
+            self._claim.release()
+            self._claim = None
+
+    def __del__(self) -> None:
+        if self.__dict__.get("_claim") is not None:
+            self.release()
+
+    def _init(self, resume: bool, logger, progress: bool) -> None:
         if resume:
-            path = self.run_dir / CHECKPOINT
-            self._resume_sd = read_checkpoint(path)
-            self.resume_changes = check_resume_config(
-                path, dict(self._resume_sd["config"]), config_as_dict(self.cfg),
-                self._resume_sd["state"],
-            )
+            self.resume_changes = changed_keys(dict(self._resume_sd["config"]), config_as_dict(self.cfg))
         else:
-            check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)
+            check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)  # overwrite=true: the earlier run's outputs go
         self._stop = None  # StopSignals while run() runs
         self._checkpoint_state: dict | None = None  # the state of the last checkpoint written (all finite)
         self.logger = logger
@@ -286,6 +312,7 @@ class WBRMTrainer:
         (it returns ``True`` to stop early); every ``checkpoint_every`` steps a checkpoint is written.
         """
         start = self.state["step"]
+        pending = self.state.pop("eval_pending", None)  # an evaluation a signal interrupted at this step
         stop = total_steps if until is None else min(total_steps, until)
         log_every, ckpt_every = self.cfg.logger.log_every, self.cfg.checkpoint_every
         # disable=None: a bar on a terminal, none in a log file (sweeps)
@@ -293,6 +320,9 @@ class WBRMTrainer:
         running: dict[str, float] = {}
         finished_early = False
         try:
+            if pending == start and start > 0 and self._evaluate_at(name, start, eval_fn):
+                finished_early = True
+                stop = start
             for step in range(start + 1, stop + 1):
                 try:
                     figures = step_fn(step)
@@ -311,7 +341,7 @@ class WBRMTrainer:
                     self.history.append({"stage": f"{name}_train", "step": step, **running})
                     bar.set_postfix({k: f"{v:.4g}" for k, v in list(running.items())[:4]})
                 if step % eval_every == 0 or step == total_steps:
-                    if eval_fn(step):
+                    if self._evaluate_at(name, step, eval_fn):
                         finished_early = True
                 if ckpt_every and step % ckpt_every == 0 and step != stop:
                     self.save_checkpoint()
@@ -324,6 +354,16 @@ class WBRMTrainer:
         finally:
             bar.close()
         return finished_early or self.state["step"] >= total_steps
+
+    def _evaluate_at(self, name: str, step: int, eval_fn: Callable[[int], bool | None]) -> bool | None:
+        """``eval_fn(step)``; a signal during an evaluation stops the run at once (the evaluation changes no training
+        state): the checkpoint records the evaluation as pending, and a resumed run does it first."""
+        try:
+            return eval_fn(step)
+        except StopNow as err:
+            self.state["eval_pending"] = step
+            self.save_checkpoint()
+            raise RunInterrupted(err.signum, name, step, self.run_dir, during="evaluation") from None
 
     def _non_finite_figure(self, figures: dict, *, read: bool) -> tuple[str, float] | None:
         """The divergence check of a step's figures: :func:`first_non_finite` on CPU (a host read costs nothing
@@ -387,8 +427,10 @@ class WBRMTrainer:
             return
         d = self.q_train_data.clone()
         source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
+        self.ratio_check = None
         if source == "learned":
             w = compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
+            self.ratio_check = self._check_ratio(w)
         elif source == "exact":
             w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
             beta = self.cfg.ratio.relative_beta
@@ -408,6 +450,36 @@ class WBRMTrainer:
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
         self.weight_stats = ratio_error(w)
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+
+    #: ŵ's mean over D outside [1 / COLLAPSE_FACTOR, COLLAPSE_FACTOR] flags a collapsed stage 1 (D is behaviour data,
+    #: over which a density ratio averages 1).
+    COLLAPSE_FACTOR = 10.0
+
+    def _check_ratio(self, w: torch.Tensor) -> dict:
+        """Stage 1's outcome against what a fit must achieve: ŵ (raw, before shaping) averaging about 1 over D, and a
+        best held-out loss below that of the untrained ŵ ≡ 1 (:attr:`DensityRatioFitter.initial_loss`). Either
+        failing sets ``"collapse"`` (the run's ``ratio_collapse`` flag), with the ``"reasons"`` in words."""
+        w = w.detach().double().reshape(-1).cpu()
+        low, high = self.cfg.ratio.bounds
+        mean = float(w.mean())
+        best = float(self.ratio_best["loss"])
+        initial = getattr(self.ratio_fitter, "initial_loss", None)
+        reasons = []
+        if not 1 / self.COLLAPSE_FACTOR <= mean <= self.COLLAPSE_FACTOR:
+            reasons.append(f"the mean of ŵ over D is {mean:.3g}, not about 1 (a density ratio averages 1 over the "
+                           f"behaviour data)")
+        if initial is not None and not best < initial:
+            reasons.append(f"the best held-out loss {best:.4g} is no better than that of the untrained ŵ ≡ 1 "
+                           f"({initial:.4g})")
+        return {
+            "mean_behaviour": mean,
+            "at_lower_bound": float((w <= low * 1.001).double().mean()),
+            "at_upper_bound": float((w >= high / 1.001).double().mean()),
+            "best_held_out_loss": best,
+            "initial_held_out_loss": initial,
+            "collapse": bool(reasons),
+            "reasons": reasons,
+        }
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
@@ -429,7 +501,12 @@ class WBRMTrainer:
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
-        record = {"stage": "q", "step": step, **self.evaluate(final=final)}
+        if self._stop is not None:  # a signal stops a (long) evaluation at once: StopNow
+            with self._stop.immediately():
+                figures = self.evaluate(final=final)
+        else:
+            figures = self.evaluate(final=final)
+        record = {"stage": "q", "step": step, **figures}
         self.history.append(record)
         bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
         if bad is not None:
@@ -450,13 +527,15 @@ class WBRMTrainer:
         ec = self.cfg.eval
         episodes = ec.episodes if final else ec.train_episodes
         self.actor.eval()
-        out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
-                                      device=self.device)
-        if self.algo.bellman_loss is not None:
-            held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
-            _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
-            out["held_out_bellman_residual"] = figures["td_error"].mean().item()  # unweighted mean δ², any residual form
-        self.actor.train()
+        try:
+            out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
+                                          device=self.device)
+            if self.algo.bellman_loss is not None:
+                held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
+                _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
+                out["held_out_bellman_residual"] = figures["td_error"].mean().item()  # unweighted mean δ², any form
+        finally:
+            self.actor.train()
         return out
 
     # ------------------------------------------------------------------ run
@@ -468,14 +547,20 @@ class WBRMTrainer:
         kept and ``"diverged"`` names the stage, step and figure), or ``None`` when stopped by ``until``. SIGINT and
         SIGTERM stop it at the next step boundary: a checkpoint is written and :class:`RunInterrupted` raised.
         """
+        if self._claim is None:  # released by an earlier run() (e.g. one stopped by ``until``)
+            self._claim = claim_run_dir(self.run_dir)
         try:
             with StopSignals() as self._stop:
                 return self._run(until=until)
         except TrainingDiverged as err:
             err.checkpoint_step = None if self._checkpoint_state is None else self._checkpoint_state["step"]
             return self._diverged_results(err)
+        except StopNow as err:  # the re-evaluation of a finished run: its checkpoint is complete, nothing to write
+            raise RunInterrupted(err.signum, self.state["stage"], self.state["step"], self.run_dir,
+                                 during="evaluation") from None
         finally:
             self._stop = None
+            self.release()
 
     def _run(self, *, until: int | None) -> dict | None:
         if self.state["stage"] == "ratio":
@@ -572,6 +657,11 @@ class WBRMTrainer:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
+        check = getattr(self, "ratio_check", None)
+        if check is not None:
+            results["ratio"]["check"] = check
+            if check["collapse"]:
+                results["flags"].append("ratio_collapse")
         results = json_safe(results)
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / "results.json", results)

@@ -6,7 +6,7 @@ import math
 from torchrl.data import Bounded
 
 from torchrl_wbrm.data import lqr as lqr_data
-from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions
+from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions, min_behaviour_episodes
 from torchrl_wbrm.data.lqr import LQRDataConfig
 from torchrl_wbrm.data.tasks.base import Evaluator, Task, to_dataclass
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
@@ -46,10 +46,12 @@ class LQRTask(Task):
         for key in ("parallel_envs", "expert_episodes"):
             if not getattr(data, key) >= 1:
                 raise ValueError(f"env.lqr_data.{key} must be >= 1, got {getattr(data, key)!r}.")
-        if not data.behaviour_episodes >= 2:
-            raise ValueError(f"env.lqr_data.behaviour_episodes must be >= 2 (split into D and S^b), got {data.behaviour_episodes!r}.")
         if not 0 < data.ratio_fraction < 1:
             raise ValueError(f"env.lqr_data.ratio_fraction must lie in (0, 1), got {data.ratio_fraction!r}.")
+        needed = min_behaviour_episodes(data.ratio_fraction)
+        if not data.dataset_dir and not data.behaviour_episodes >= needed:
+            raise ValueError(f"env.lqr_data.behaviour_episodes must be >= {needed} (split by episode into S^b and D, "
+                             f"and D again into training and held-out sets), got {data.behaviour_episodes!r}.")
         if not 0 <= data.expert_tau <= 1:
             raise ValueError(f"env.lqr_data.expert_tau must lie in [0, 1], got {data.expert_tau!r}.")
         if not data.behaviour_noise_std >= 0:
