@@ -199,3 +199,105 @@ def test_the_trainer_runs_stage_1_through_the_public_fitter(tmp_path):
     assert trainer.ratio_fitter.num_steps == 20 and trainer.ratio_best is trainer.ratio_fitter.best
     w = compute_density_ratio(trainer.ratio_network, trainer.q_train_data)
     torch.testing.assert_close(trainer.q_buffer[:]["density_ratio"], shape_weights(w, temper=trainer.cfg.ratio.temper))
+
+
+# ---------------------------------------------------------------- inputs named, seeds, collapse, rows and weights
+def test_too_small_sets_name_the_set():
+    behaviour, expert = _samples(50, BEHAVIOUR_STD, 1), _samples(50, EXPERT_STD, 2)
+    with pytest.raises(ValueError, match="The behaviour set has 1 sample"):
+        fit_density_ratio(behaviour[:1], expert, steps=5)
+    with pytest.raises(ValueError, match="The expert set has 0 sample"):
+        fit_density_ratio(behaviour, expert[:0], steps=5)
+    with pytest.raises(ValueError, match="The held-out expert set is empty"):
+        DensityRatioFitter(DensityRatioNetwork(1, 1, num_cells=(8,)), behaviour, expert,
+                           holdout=(behaviour[:5], expert[:0]))
+
+
+@pytest.mark.parametrize("steps", [0, -5])
+def test_steps_must_be_positive(steps):
+    behaviour, expert = _samples(50, BEHAVIOUR_STD, 1), _samples(50, EXPERT_STD, 2)
+    with pytest.raises(ValueError, match=f"steps must be a positive integer.*got {steps}"):
+        fit_density_ratio(behaviour, expert, steps=steps)
+    fitter = DensityRatioFitter(DensityRatioNetwork(1, 1, num_cells=(8,)), behaviour, expert, batch_size=16)
+    with pytest.raises(ValueError, match="steps must be a positive integer"):
+        fitter.fit(steps)
+
+
+def test_the_same_seed_gives_the_same_fit_and_float64_data_fit_alike():
+    """The network's initialisation and the batches come from ``seed``, not from the global generator (which is
+    left as it was); float64 data are converted to the network's dtype and give the same fit."""
+    behaviour, expert = _samples(400, BEHAVIOUR_STD, 1), _samples(200, EXPERT_STD, 2)
+
+    def fit(b, e, seed):
+        return fit_density_ratio(b, e, steps=30, eval_every=10, batch_size=64, num_cells=(16,), seed=seed)
+
+    torch.manual_seed(0)
+    first = fit(behaviour, expert, 3)
+    state = torch.get_rng_state()
+    torch.manual_seed(99)
+    second = fit(behaviour, expert, 3)
+    torch.manual_seed(0)
+    fit(behaviour, expert, 3)
+    assert torch.equal(torch.get_rng_state(), state)  # the caller's random state is untouched
+    a, b = first.network.state_dict(), second.network.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a) and first.best_loss == second.best_loss
+    other = fit(behaviour, expert, 4)
+    assert other.best_loss != first.best_loss
+    wide = fit(behaviour.apply(lambda x: x.double()), expert.apply(lambda x: x.double()), 3)
+    assert wide.best_loss == pytest.approx(first.best_loss, abs=1e-5)
+
+
+def test_a_fit_that_only_got_worse_returns_its_start_and_is_flagged():
+    """Gradient ascent (Adam with maximize=True): every evaluation is worse than the start. The fitter keeps the
+    initial state as its best (step 0), returns it, and flags ``ratio_collapse``; a real fit is not flagged."""
+    behaviour, expert = _samples(400, BEHAVIOUR_STD, 1), _samples(200, EXPERT_STD, 2)
+    torch.manual_seed(0)
+    network = DensityRatioNetwork(1, 1, num_cells=(16,))
+    start = {k: v.clone() for k, v in network.state_dict().items()}
+    optimiser = torch.optim.Adam(network.parameters(), lr=0.05, maximize=True)
+    fitter = DensityRatioFitter(network, behaviour, expert, batch_size=64, optimizer=optimiser)
+    fit = fitter.fit(steps=60, eval_every=10)
+    assert fit.history[-1]["held_out_loss"] > fitter.start_loss  # it did get worse
+    assert fit.best_step == 0 and fit.best_loss == pytest.approx(fitter.start_loss)
+    assert fit.ratio_collapse and fitter.ratio_collapse
+    assert all(torch.equal(v, start[k]) for k, v in fit.network.state_dict().items())
+    good = fit_density_ratio(behaviour, expert, steps=200, eval_every=20, batch_size=64, num_cells=(16,), lr=3e-3)
+    assert not good.ratio_collapse and good.best_step > 0
+
+
+def test_store_refuses_weights_that_are_not_one_per_row_and_empty_targets():
+    rb = _buffer(_samples(10, BEHAVIOUR_STD, 7))
+    with pytest.raises(ValueError, match=r"shape \(5, 2\) for 10 rows"):
+        store_density_ratio(rb, torch.ones(5, 2))
+    empty = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)
+    with pytest.raises(ValueError, match="The replay buffer is empty"):
+        store_density_ratio(empty, torch.ones(0))
+    with pytest.raises(ValueError, match="no rows to store weights under 'density_ratio'"):
+        store_density_ratio(TensorDict({}, [0]), torch.ones(0))
+    ints = store_density_ratio(_samples(4, BEHAVIOUR_STD, 6), torch.tensor([1, 2, 3, 2]))
+    torch.testing.assert_close(ints, torch.tensor([0.5, 1.0, 1.5, 1.0]))
+
+
+@pytest.mark.parametrize("storage", [LazyTensorStorage, LazyMemmapStorage])
+def test_stored_weights_follow_their_rows(storage):
+    """Rows written after store_density_ratio (here replacing rows 0-1 and filling rows 10-11 of a 12-row
+    buffer) never carry another row's weight or 0: they hold none, a sample that draws them is refused by name,
+    and storing again gives every row its own. Rows written with their own weight keep it."""
+    from torchrl_wbrm.ratio import MissingWeightsError
+
+    rb = TensorDictReplayBuffer(storage=storage(12), batch_size=12)
+    rb.extend(_samples(10, BEHAVIOUR_STD, 8))
+    store_density_ratio(rb, torch.arange(1.0, 11.0), self_normalise=False)
+    rb.extend(_samples(4, BEHAVIOUR_STD, 9))  # rows 10, 11, 0, 1
+    stored = rb.storage._storage["density_ratio"]
+    assert torch.isnan(stored[[0, 1, 10, 11]]).all()
+    torch.testing.assert_close(torch.as_tensor(stored[2:10]), torch.arange(3.0, 11.0))
+    with pytest.raises(MissingWeightsError, match="hold no stored weight under 'density_ratio'.*store_density_ratio"):
+        rb.sample()
+    store_density_ratio(rb, torch.full((12,), 2.0), self_normalise=False)
+    assert (rb.sample()["density_ratio"] == 2.0).all()
+    own = _samples(2, BEHAVIOUR_STD, 10)
+    own["density_ratio"] = torch.tensor([5.0, 7.0])
+    rb.extend(own)  # rows 2, 3
+    torch.testing.assert_close(torch.as_tensor(rb.storage._storage["density_ratio"][2:4]), torch.tensor([5.0, 7.0]))
+    assert len(rb._transform) == 1  # storing again added no second transform

@@ -7,17 +7,27 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   returns the best network and its diagnostics (:class:`DensityRatioFit`).
 - :func:`compute_density_ratio`: ŵ over every row of a dataset, in chunks.
 - :func:`store_density_ratio`: shape (:func:`shape_weights`: temper, clip, mix, self-normalise) and store it in a
-  TensorDict or a replay buffer's storage under ``"density_ratio"`` (for ``WeightedBellmanLoss``) or
-  ``"priority_weight"`` (for TorchRL's own losses, which then become ŵ-weighted).
+  TensorDict or a replay buffer's storage under ``"density_ratio"`` (for ``WeightedBellmanLoss``, and for any
+  TorchRL loss wrapped in ``WeightedLoss``) or ``"priority_weight"`` (read natively only by the TorchRL losses of
+  ``NATIVE_PRIORITY_WEIGHT_LOSSES``); in a replay buffer the weights follow their rows
+  (:class:`StoredWeightsFollowRows`).
 """
 from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
-from torchrl_wbrm.ratio.storing import NonFiniteWeightsError, compute_density_ratio, store_density_ratio
+from torchrl_wbrm.ratio.storing import (
+    MissingWeightsError,
+    NonFiniteWeightsError,
+    StoredWeightsFollowRows,
+    compute_density_ratio,
+    store_density_ratio,
+)
 from torchrl_wbrm.ratio.weights import shape_weights
 
 __all__ = [
     "DensityRatioFit",
     "DensityRatioFitter",
+    "MissingWeightsError",
     "NonFiniteWeightsError",
+    "StoredWeightsFollowRows",
     "as_tensordict",
     "compute_density_ratio",
     "fit_density_ratio",

@@ -38,8 +38,10 @@ def as_tensordict(data: TensorDictBase | ReplayBuffer) -> TensorDictBase:
     raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(data).__name__}.")
 
 
-def holdout_split(data: TensorDictBase, fraction: float, generator: torch.Generator | None = None):
-    """``(train, held_out)``: a random ``fraction`` of the rows of ``data`` (at least one) held out.
+def holdout_split(data: TensorDictBase, fraction: float, generator: torch.Generator | None = None, *,
+                  name: str = "data"):
+    """``(train, held_out)``: a random ``fraction`` of the rows of ``data`` (at least one) held out; ``name`` says
+    which set it is in the error for fewer than 2 rows.
 
     Examples:
         >>> import torch
@@ -51,12 +53,25 @@ def holdout_split(data: TensorDictBase, fraction: float, generator: torch.Genera
     """
     if not 0.0 < fraction < 1.0:
         raise ValueError(f"The held-out fraction must lie in (0, 1), got {fraction}.")
-    n = data.shape[0]
+    n = data.shape[0] if data.batch_dims else 0
     if n < 2:
-        raise ValueError(f"Cannot hold out a share of {n} sample(s).")
+        raise ValueError(f"The {name} set has {n} sample(s): holding out a share of it for early stopping needs at "
+                         "least 2 (and training on it at least 1 more); pass more samples, or explicit held-out sets "
+                         "(holdout=(behaviour, expert)).")
     perm = torch.randperm(n, generator=generator)
     n_hold = max(1, int(round(fraction * n)))
     return data[perm[n_hold:]], data[perm[:n_hold]]
+
+
+def _as_inputs(data: TensorDictBase, keys: Sequence[NestedKey], dtype: torch.dtype, name: str) -> TensorDictBase:
+    """The ratio network's input ``keys`` of ``data``, floating entries in the network's ``dtype`` (float64 data
+    for a float32 network are converted); a missing key is a KeyError naming the set."""
+    missing = [key for key in keys if data.get(key, None) is None]
+    if missing:
+        raise KeyError(f"The {name} set lacks {missing}, input(s) of the ratio network (its in_keys are "
+                       f"{list(keys)}); it holds {sorted(str(k) for k in data.keys(True, True))}.")
+    data = data.select(*keys)
+    return data.apply(lambda x: x.to(dtype) if x.is_floating_point() and x.dtype != dtype else x)
 
 
 class _PairedBufferSampler:
@@ -81,6 +96,9 @@ class DensityRatioFit:
         best_loss: the best held-out loss; ``best_step``: the step it was reached at.
         steps_run: gradient steps taken (fewer than asked when early stopping stopped the fit).
         stopped_early: whether ``patience`` evaluations without improvement ended the fit.
+        ratio_collapse: whether the fit failed (:attr:`DensityRatioFitter.ratio_collapse`): no evaluation beat the
+            network's initial state, which is then the one returned, or the best held-out loss is not below that
+            of ŵ ≡ 1. A caller should then not trust ŵ (the trainer flags the run).
         diagnostics: the loss's figures on the held-out sets with the best network (``"held_out_loss"``,
             ``"density_ratio_behaviour_mean"`` — about 1 for a good fit —, ``"density_ratio_expert_mean"``,
             ``"density_ratio_ess"``, ...).
@@ -95,6 +113,7 @@ class DensityRatioFit:
     stopped_early: bool
     diagnostics: dict[str, float]
     history: list[dict] = field(default_factory=list)
+    ratio_collapse: bool = False
 
 
 class DensityRatioFitter:
@@ -179,13 +198,21 @@ class DensityRatioFitter:
         self.patience = int(patience)
         self.min_improvement = float(min_improvement)
         self.keys = list(self.network.in_keys)
-        b, e = as_tensordict(behaviour), as_tensordict(expert)
+        dtype = params[0].dtype
+        b = _as_inputs(as_tensordict(behaviour), self.keys, dtype, "behaviour")
+        e = _as_inputs(as_tensordict(expert), self.keys, dtype, "expert")
         if holdout is None:
             generator = generator if generator is not None else torch.Generator().manual_seed(0)
-            b_train, b_hold = holdout_split(b, holdout_fraction, generator)
-            e_train, e_hold = holdout_split(e, holdout_fraction, generator)
+            b_train, b_hold = holdout_split(b, holdout_fraction, generator, name="behaviour")
+            e_train, e_hold = holdout_split(e, holdout_fraction, generator, name="expert")
         else:
-            (b_train, e_train), (b_hold, e_hold) = (b, e), holdout
+            (b_train, e_train) = (b, e)
+            b_hold = _as_inputs(holdout[0], self.keys, dtype, "held-out behaviour")
+            e_hold = _as_inputs(holdout[1], self.keys, dtype, "held-out expert")
+            for name, data in (("behaviour", b_train), ("expert", e_train), ("held-out behaviour", b_hold),
+                               ("held-out expert", e_hold)):
+                if not data.batch_dims or data.shape[0] == 0:
+                    raise ValueError(f"The {name} set is empty: the density-ratio fit needs samples in it.")
         self.behaviour_buffer = make_replay_buffer(b_train.select(*self.keys))
         self.expert_buffer = make_replay_buffer(e_train.select(*self.keys))
         self.batch_size = int(batch_size)
@@ -195,8 +222,25 @@ class DensityRatioFitter:
         ).to(self.device)
         self.num_steps = 0
         #: the early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, and
-        #: ``bad``, the evaluations since the last improvement
-        self.best = {"loss": math.inf, "state": copy.deepcopy(self.network.state_dict()), "bad": 0}
+        #: ``bad``, the evaluations since the last improvement. It starts at the network's initial state (step 0)
+        #: and its held-out loss, so a fit that only got worse returns the state it started from.
+        self.best = {"loss": math.inf, "state": copy.deepcopy(self.network.state_dict()), "bad": 0, "step": 0}
+        with torch.no_grad():
+            initial = self.loss_module(self.holdout)["loss_density_ratio"].item()
+        if math.isfinite(initial):
+            self.best["loss"] = initial
+        #: the held-out loss of the network's initial state (the reference :attr:`ratio_collapse` compares with)
+        self.start_loss = initial
+
+    @property
+    def ratio_collapse(self) -> bool:
+        """Whether the fit failed: no evaluation improved on the held-out loss of the network's initial state (the
+        best state is still the initial one, step 0) although it was evaluated after training steps, or the best
+        held-out loss is not below that of ŵ ≡ 1 (:attr:`initial_loss`). The trainer reads it (``ratio_collapse``
+        beside ``q_blow_up``); :meth:`fit` also returns it in :class:`DensityRatioFit`."""
+        evaluated = self.best.get("evaluations", 0) > 0
+        no_progress = evaluated and self.best.get("step", 0) == 0 and self.num_steps > 0
+        return bool(no_progress or not self.best["loss"] < self.initial_loss)
 
     @property
     def initial_loss(self) -> float:
@@ -240,6 +284,7 @@ class DensityRatioFitter:
         step = self.num_steps if step is None else int(step)
         held_out = self.loss_module(self.holdout)["loss_density_ratio"].item()
         best = self.best
+        best["evaluations"] = best.get("evaluations", 0) + 1
         improved = held_out < best["loss"] - self.min_improvement
         if improved:
             best.update(loss=held_out, state=copy.deepcopy(self.network.state_dict()), bad=0, step=step)
@@ -282,6 +327,8 @@ class DensityRatioFitter:
         """
         if eval_every <= 0:
             raise ValueError(f"eval_every must be > 0, got {eval_every}.")
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps <= 0:
+            raise ValueError(f"steps must be a positive integer (gradient steps in all), got {steps!r}.")
         history, stopped = [], False
         while self.num_steps < steps:
             figures = self.step()
@@ -303,7 +350,7 @@ class DensityRatioFitter:
         return DensityRatioFit(
             network=network, loss_module=self.loss_module, best_loss=self.best["loss"],
             best_step=self.best.get("step"), steps_run=self.num_steps, stopped_early=stopped,
-            diagnostics=self.held_out_figures(), history=history,
+            diagnostics=self.held_out_figures(), history=history, ratio_collapse=self.ratio_collapse,
         )
 
 
@@ -331,20 +378,31 @@ def fit_density_ratio(
     return the best held-out network with its diagnostics (:class:`DensityRatioFit`).
 
     Without a ``ratio_network`` a :class:`~torchrl_wbrm.modules.DensityRatioNetwork` with ``bounds`` and
-    ``num_cells`` is built from the data's observation and action sizes (initialised from torch's global
-    generator). ``alpha`` and ``loss_kwargs`` go to :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss`;
-    ``seed`` seeds the held-out split. The defaults are the recipe's stage 1 (``RatioConfig``).
+    ``num_cells`` is built from the data's observation and action sizes. ``alpha`` and ``loss_kwargs`` go to
+    :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss`. ``seed`` seeds everything random in the fit: the
+    held-out split, the new network's initialisation and the training batches, under a forked torch generator (the
+    caller's global random state is left as it was), so the same seed gives the same fit. Float64 data are
+    converted to the network's dtype. The defaults are the recipe's stage 1 (``RatioConfig``).
     """
-    if ratio_network is None:
-        b = as_tensordict(behaviour)
-        ratio_network = DensityRatioNetwork(b["observation"].shape[-1], b["action"].shape[-1], bounds=tuple(bounds),
-                                            num_cells=tuple(num_cells))
-    if device is not None:
-        ratio_network = ratio_network.to(device)
-    loss = RobustDensityRatioLoss(ratio_network, alpha=alpha, **loss_kwargs)
-    fitter = DensityRatioFitter(
-        loss, behaviour, expert, batch_size=batch_size, lr=lr, weight_decay=weight_decay, grad_clip=grad_clip,
-        holdout_fraction=holdout_fraction, generator=torch.Generator().manual_seed(seed), patience=patience,
-        device=device,
-    )
-    return fitter.fit(steps, eval_every=eval_every)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps <= 0:
+        raise ValueError(f"steps must be a positive integer (gradient steps in all), got {steps!r}.")
+    devices = [torch.device(device).index or 0] if device is not None and torch.device(device).type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        if ratio_network is None:
+            b = as_tensordict(behaviour)
+            for key in ("observation", "action"):
+                if b.get(key, None) is None:
+                    raise KeyError(f"The behaviour set lacks {key!r}, needed to size the ratio network; pass a "
+                                   "ratio_network reading the keys it holds.")
+            ratio_network = DensityRatioNetwork(b["observation"].shape[-1], b["action"].shape[-1],
+                                                bounds=tuple(bounds), num_cells=tuple(num_cells))
+        if device is not None:
+            ratio_network = ratio_network.to(device)
+        loss = RobustDensityRatioLoss(ratio_network, alpha=alpha, **loss_kwargs)
+        fitter = DensityRatioFitter(
+            loss, behaviour, expert, batch_size=batch_size, lr=lr, weight_decay=weight_decay, grad_clip=grad_clip,
+            holdout_fraction=holdout_fraction, generator=torch.Generator().manual_seed(seed), patience=patience,
+            device=device,
+        )
+        return fitter.fit(steps, eval_every=eval_every)

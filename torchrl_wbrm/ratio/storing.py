@@ -1,11 +1,21 @@
 """ŵ over a dataset, computed once in chunks, shaped, and stored next to the transitions.
 
-Stored under ``"density_ratio"`` it is the weight :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` reads; under
-``"priority_weight"`` it is the per-sample weight TorchRL's own losses (``TD3BCLoss``, ``TD3Loss``, ``DDPGLoss``,
-``DQNLoss``, ``SACLoss``, ``IQLLoss``, ...) multiply their per-sample losses by (``use_prioritized_weights="auto"``),
-which turns any of them into a ŵ-weighted method. (TorchRL reduces a weighted loss as ``Σ wᵢ lᵢ / Σ wᵢ`` over the
-batch. A replay buffer with a ``PrioritizedSampler`` writes its own ``"priority_weight"`` into every batch: there,
-store ŵ under another key and point the loss at it with ``loss.set_keys(priority_weight=...)``.)
+Stored under ``"density_ratio"`` it is the weight :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` and
+:class:`~torchrl_wbrm.objectives.WeightedLoss` read. Any TorchRL loss built with ``reduction="none"`` becomes
+ŵ-weighted inside ``WeightedLoss(loss)``, which reduces each per-sample term as ``Σ ŵᵢ lᵢ / Σ ŵᵢ``: ``IQLLoss``,
+``CQLLoss``, ``DiscreteCQLLoss`` and ``BCLoss`` need WeightedLoss, since they ignore ``"priority_weight"``.
+
+Stored under ``"priority_weight"`` it is the per-sample weight of the TorchRL losses that read ``"priority_weight"``
+themselves (``DDPGLoss``, ``DQNLoss``, ``DistributionalDQNLoss``, ``SACLoss``, ``DiscreteSACLoss``, ``TD3Loss``,
+``TD3BCLoss``, ``TQCLoss``: :data:`~torchrl_wbrm.objectives.NATIVE_PRIORITY_WEIGHT_LOSSES`), with
+``use_prioritized_weights="auto"``; they reduce it the same way. No other TorchRL loss reads that key: there a weight
+stored under it is silently ignored. (A replay buffer with a ``PrioritizedSampler`` writes its own
+``"priority_weight"`` into every batch: there, store ŵ under ``"density_ratio"`` and use ``WeightedLoss``, which
+multiplies the two.)
+
+The weights live in the buffer's storage beside the rows they belong to. Rows written later by ``extend`` (or
+``add``) carry no weight of their own: such rows hold NaN under the key, and ``WeightedLoss`` and
+``WeightedBellmanLoss`` refuse a batch holding them, naming the key; store the weights again after writing.
 """
 from __future__ import annotations
 
@@ -15,11 +25,13 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 from torchrl.data.replay_buffers.storages import TensorStorage
+from torchrl.envs.transforms import Transform
 
 from torchrl_wbrm.ratio.fitting import as_tensordict
 from torchrl_wbrm.ratio.weights import shape_weights
 
-__all__ = ["NonFiniteWeightsError", "compute_density_ratio", "store_density_ratio"]
+__all__ = ["MissingWeightsError", "NonFiniteWeightsError", "StoredWeightsFollowRows", "compute_density_ratio",
+           "store_density_ratio"]
 
 
 class NonFiniteWeightsError(ValueError):
@@ -28,6 +40,64 @@ class NonFiniteWeightsError(ValueError):
     def __init__(self, key, value: float):
         self.key, self.value = key, value
         super().__init__(f"The weights to store under {key!r} are not all finite (e.g. {value}); nothing was stored.")
+
+
+class MissingWeightsError(ValueError):
+    """Rows sampled from a replay buffer that hold no stored weight: they were written after the weights were."""
+
+
+class StoredWeightsFollowRows(Transform):
+    """Keeps the weights that :func:`store_density_ratio` stored in a replay buffer with the rows they belong to.
+
+    :func:`store_density_ratio` appends it to the buffer (``buffer.append_transform``). On every write (``extend``,
+    ``add``, ``buffer[i] = ...``; the inverse transform) a row that comes without ``key`` gets NaN there, so a row
+    that replaces an old one never inherits the old row's weight. On every read (``sample``, ``buffer[i]``) a batch
+    holding such a row is refused with a :class:`MissingWeightsError` naming the key and the fix (call
+    :func:`store_density_ratio` again over the buffer). Rows written with their own ``key`` keep it.
+
+    Args:
+        key (NestedKey): the key of the stored weights.
+        row_shape (torch.Size): the shape of one row's weight (``()`` or ``(1,)``).
+        dtype (torch.dtype): the stored dtype.
+    """
+
+    def __init__(self, key: NestedKey, row_shape: torch.Size, dtype: torch.dtype) -> None:
+        super().__init__(in_keys=[], out_keys=[])
+        self.key, self.row_shape, self.dtype = key, torch.Size(row_shape), dtype
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        weight = tensordict.get(self.key, None)
+        if weight is not None and weight.is_floating_point():
+            missing = torch.isnan(weight)
+            if bool(missing.any()):
+                rows = missing.reshape(*tensordict.batch_size, -1).any(-1).nonzero().reshape(-1).tolist()
+                raise MissingWeightsError(
+                    f"{len(rows)} sampled row(s) hold no stored weight under {self.key!r} (batch positions "
+                    f"{rows[:8]}{' ...' if len(rows) > 8 else ''}): they were written to the buffer after "
+                    f"store_density_ratio stored the weights. Call store_density_ratio(buffer, ...) again after "
+                    "writing, or write rows with their own weight under that key."
+                )
+        return tensordict
+
+    _call = forward
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.get(self.key, None) is None:
+            tensordict.set(self.key, torch.full((*tensordict.batch_size, *self.row_shape), float("nan"),
+                                                dtype=self.dtype, device=tensordict.device))
+        return tensordict
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(key={self.key!r})"
+
+
+def _follow_rows(buffer: ReplayBuffer, key: NestedKey, row_shape: torch.Size, dtype: torch.dtype) -> None:
+    """Append :class:`StoredWeightsFollowRows` for ``key`` to ``buffer`` unless it already has one."""
+    transform = getattr(buffer, "_transform", None)
+    existing = list(transform) if transform is not None else []
+    if any(isinstance(t, StoredWeightsFollowRows) and t.key == key for t in existing):
+        return
+    buffer.append_transform(StoredWeightsFollowRows(key, row_shape, dtype))
 
 
 @torch.no_grad()
@@ -78,8 +148,9 @@ def store_density_ratio(
 
     Keyword Args:
         ratio_network (TensorDictModule, optional): the fitted ŵ (e.g. ``DensityRatioFit.network``).
-        key (NestedKey): where the weights go: ``"density_ratio"`` (default; read by ``WeightedBellmanLoss``) or
-            ``"priority_weight"`` (read by TorchRL's losses).
+        key (NestedKey): where the weights go: ``"density_ratio"`` (default; read by ``WeightedBellmanLoss`` and
+            ``WeightedLoss``) or ``"priority_weight"`` (read only by the TorchRL losses of
+            :data:`~torchrl_wbrm.objectives.NATIVE_PRIORITY_WEIGHT_LOSSES`).
         temper, clip, mix, self_normalise: the shaping ``ŵ^temper``, ``min(·, clip)``, ``(1 − mix)·/mean + mix``
             and division by the mean over the dataset (defaults: none but the self-normalisation).
         keepdim (bool): store shape ``[N, 1]`` instead of ``[N]``. TorchRL's losses need ``[N]`` (the shape of
@@ -89,6 +160,10 @@ def store_density_ratio(
 
     Returns: the stored weights (``[N]`` or ``[N, 1]``, on the CPU). Raises :class:`NonFiniteWeightsError` (a
     ``ValueError``) and stores nothing if the shaped weights are not all finite.
+
+    In a replay buffer the weights follow their rows (:class:`StoredWeightsFollowRows`, appended to the buffer's
+    transforms): a row written later by ``extend`` or ``add`` holds no weight (NaN) until ``store_density_ratio``
+    is called again, and a ``sample()`` that draws it raises :class:`MissingWeightsError`, naming the key.
 
     Examples:
         >>> import torch
@@ -108,8 +183,14 @@ def store_density_ratio(
             raise TypeError(f"store_density_ratio needs a replay buffer over a 1-d TensorStorage, got "
                             f"{type(storage).__name__}.")
         n = len(storage)
+        if n == 0:
+            raise ValueError(f"The replay buffer is empty: there are no rows to store weights under {key!r} for; "
+                             "extend it with the transitions first.")
         rows = storage._storage[:n]
     elif isinstance(target, TensorDictBase):
+        if target.batch_dims == 0 or target.shape[0] == 0:
+            raise ValueError(f"The TensorDict has batch size {tuple(target.batch_size)}: there are no rows to store "
+                             f"weights under {key!r} for.")
         n, rows = target.shape[0], target
     else:
         raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(target).__name__}.")
@@ -119,8 +200,12 @@ def store_density_ratio(
         weights = compute_density_ratio(ratio_network, rows, chunk_size=chunk_size, device=device)
     elif ratio_network is not None:
         raise ValueError("Pass the raw weights or a ratio_network, not both.")
-    if weights.numel() != n:
-        raise ValueError(f"Got {weights.numel()} weights for {n} rows.")
+    weights = torch.as_tensor(weights)
+    if not weights.is_floating_point():  # counts or 0/1 weights: shaped (divided by their mean) as floats
+        weights = weights.to(torch.get_default_dtype())
+    if tuple(weights.shape) not in ((n,), (n, 1)):
+        raise ValueError(f"Got weights of shape {tuple(weights.shape)} for {n} rows; expected one weight per row, "
+                         f"shape ({n},) or ({n}, 1).")
     w = shape_weights(weights, temper=temper, clip=clip, mix=mix, self_normalise=self_normalise)
     if not bool(torch.isfinite(w).all()):
         raise NonFiniteWeightsError(key, float(w[~torch.isfinite(w)][0]))
@@ -132,9 +217,12 @@ def store_density_ratio(
         return w
     data = storage._storage
     if key in data.keys(True, True):  # overwrite in place (works on a locked, memory-mapped storage too)
-        data.get(key)[:n] = w.to(data.get(key).dtype).reshape(data.get(key)[:n].shape)
+        stored = data.get(key)
+        stored[:n] = w.to(stored.dtype).reshape(stored[:n].shape)
+        _follow_rows(target, key, stored.shape[1:], stored.dtype)
         return w
-    full = torch.zeros((data.shape[0], *w.shape[1:]), dtype=w.dtype)
+    _follow_rows(target, key, w.shape[1:], w.dtype)
+    full = torch.full((data.shape[0], *w.shape[1:]), float("nan"), dtype=w.dtype)  # rows not written yet: none
     full[:n] = w
     locked = data.is_locked
     if locked:  # a memory-mapped storage: the new entry is memory-mapped too
@@ -145,4 +233,5 @@ def store_density_ratio(
     finally:
         if locked:
             data.lock_()
+            storage._storage_keys = None  # the storage caches a locked storage's keys: let writes reach the new one
     return w
