@@ -365,8 +365,7 @@ class OneHotActions(torch.nn.Module):
         return action.argmax(-1)
 
     def forward(self, index: torch.Tensor) -> torch.Tensor:
-        index = index.reshape(index.shape[:-1] if index.ndim and index.shape[-1] == 1 else index.shape)
-        return self.values[index]
+        return self.values[index]  # categorical indices [*B] -> one-hot [*B, n] (a batch of one stays one)
 
 
 @contextlib.contextmanager

@@ -20,7 +20,7 @@ class ActionGrid(nn.Module):
 
     ``index(action)`` snaps continuous actions to the nearest grid point per coordinate and returns the joint index
     (the dataset's actions -> DQN's); ``forward(index)`` returns the continuous action of a joint index (DQN's greedy
-    action -> the env).
+    action -> the env): indices of shape ``[*B]`` give actions of shape ``[*B, m]``.
     """
 
     def __init__(self, values: torch.Tensor) -> None:
@@ -52,7 +52,8 @@ class ActionGrid(nn.Module):
         return (per_coordinate * self.radix).sum(-1)
 
     def forward(self, index: torch.Tensor) -> torch.Tensor:
-        index = index.reshape(index.shape[:-1] if index.ndim and index.shape[-1] == 1 else index.shape)
+        # ``index`` is categorical, of shape [*B] (torchrl's ``QValueModule`` with ``action_space="categorical"``):
+        # no trailing dimension to squeeze, so a batch of one ([1]) stays a batch of one
         per_coordinate = (index.unsqueeze(-1) // self.radix) % self.values.shape[1]  # [*B, m]
         return torch.gather(self.values.expand(*per_coordinate.shape[:-1], *self.values.shape), -1,
                             per_coordinate.unsqueeze(-1)).squeeze(-1)
