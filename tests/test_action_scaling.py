@@ -106,7 +106,7 @@ def test_unit_q_network_reads_unit_actions_as_the_box_network_reads_box_actions(
 
     spec = Bounded(-5.0, 5.0, (2,))
     scaling = ActionScaling(spec)
-    q_box = make_q_network(3, 2, num_cells=(16,))
+    q_box = make_q_network(3, 2, initial_bias=0.0, num_cells=(16,))
     q_unit = scaling.unit_q_network(q_box)
     g = torch.Generator().manual_seed(0)
     obs, a = torch.randn(64, 3, generator=g), 10 * torch.rand(64, 2, generator=g) - 5

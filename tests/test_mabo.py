@@ -92,8 +92,8 @@ def _small_networks(**kwargs) -> MABOLoss:
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, (1,))
     loss = MABOLoss(
-        make_q_network(2, 1, num_cells=(8,)),
-        make_q_network(2, 1, num_cells=(8,), out_key="adversary_output"),
+        make_q_network(2, 1, initial_bias=0.0, num_cells=(8,)),
+        make_q_network(2, 1, initial_bias=0.0, num_cells=(8,), out_key="adversary_output"),
         actor_network=make_deterministic_actor(2, spec, num_cells=(8,)),
         **kwargs,
     )

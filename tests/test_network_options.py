@@ -73,7 +73,7 @@ def test_every_builder_takes_the_activation_depth_and_layer_norm():
 
     spec = Bounded(-1.0, 1.0, (2,))
     builders = [
-        make_q_network(3, 2, num_cells=(8, 8, 8), activation="ELU", layer_norm=True),
+        make_q_network(3, 2, initial_bias=0.0, num_cells=(8, 8, 8), activation="ELU", layer_norm=True),
         make_discrete_q_network(3, 4, num_cells=(8, 8, 8), activation="ELU", layer_norm=True),
         make_deterministic_actor(3, spec, num_cells=(8, 8, 8), activation="ELU", layer_norm=True),
         make_tanh_normal_actor(3, spec, num_cells=(8, 8, 8), activation="ELU", layer_norm=True),
@@ -99,9 +99,9 @@ def test_q_network_starts_at_its_initial_bias_whatever_the_value_scale():
 
 def test_value_scale_multiplies_the_network():
     torch.manual_seed(0)
-    q1 = make_q_network(3, 2, num_cells=(16,), value_scale=1.0)
+    q1 = make_q_network(3, 2, initial_bias=0.0, num_cells=(16,), value_scale=1.0)
     torch.manual_seed(0)
-    q10 = make_q_network(3, 2, num_cells=(16,), value_scale=10.0)
+    q10 = make_q_network(3, 2, initial_bias=0.0, num_cells=(16,), value_scale=10.0)
     td = _td()
     torch.testing.assert_close(q10(td.clone())["state_action_value"], 10 * q1(td.clone())["state_action_value"])
 
@@ -109,7 +109,7 @@ def test_value_scale_multiplies_the_network():
 @pytest.mark.parametrize("reduction", ["mean", "min"])
 def test_ensemble_reduces_independent_members(reduction):
     torch.manual_seed(0)
-    q = make_q_network(3, 2, num_cells=(16,), num_members=2, ensemble_reduction=reduction)
+    q = make_q_network(3, 2, initial_bias=0.0, num_cells=(16,), num_members=2, ensemble_reduction=reduction)
     ensemble = next(m for m in q.modules() if isinstance(m, EnsembleReduction))
     a, b = ensemble.members
     assert not torch.equal(a[0].weight, b[0].weight)  # independently initialised
@@ -122,7 +122,7 @@ def test_ensemble_reduces_independent_members(reduction):
 def test_observation_normalisation_is_a_fixed_input_layer():
     torch.manual_seed(0)
     loc, scale = torch.tensor([1.0, -2.0, 3.0]), torch.tensor([2.0, 0.5, 4.0])
-    q = make_q_network(3, 2, num_cells=(16,), observation_loc=loc, observation_scale=scale)
+    q = make_q_network(3, 2, initial_bias=0.0, num_cells=(16,), observation_loc=loc, observation_scale=scale)
     normalised = next(m for m in q.modules() if isinstance(m, NormalisedMLP))
     td = _td()
     expected = normalised.net(torch.cat([(td["observation"] - loc) / scale, td["action"]], -1))  # action unchanged
@@ -130,9 +130,9 @@ def test_observation_normalisation_is_a_fixed_input_layer():
     assert {"module.loc", "module.scale"} <= set(q.state_dict())  # saved with the model, not trained
     assert not any(p is normalised.loc or p is normalised.scale for p in q.parameters())
     with pytest.raises(ValueError, match="observation_scale"):
-        make_q_network(3, 2, observation_loc=loc, observation_scale=torch.tensor([1.0, 0.0, 1.0]))
+        make_q_network(3, 2, initial_bias=0.0, observation_loc=loc, observation_scale=torch.tensor([1.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match="both"):
-        make_q_network(3, 2, observation_loc=loc)
+        make_q_network(3, 2, initial_bias=0.0, observation_loc=loc)
 
 
 def _trainer(tmp_path, *overrides, resume=False):

@@ -34,7 +34,7 @@ def _batch(seed: int = 0) -> TensorDict:
 def _loss(**kwargs) -> WeightedBellmanLoss:
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, (1,))
-    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(16,)),
+    loss = WeightedBellmanLoss(make_q_network(2, 1, initial_bias=0.0, num_cells=(16,)),
                                actor_network=make_deterministic_actor(2, spec, num_cells=(16,)), **kwargs)
     loss.make_value_estimator(gamma=0.9)
     return loss

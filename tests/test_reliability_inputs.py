@@ -208,3 +208,93 @@ def test_three_dimensional_exact_return_refusal_says_what_is_supported():
         LQREnv(LQRConfig(**cfg)).optimal_return()
     unclipped = LQREnv(LQRConfig(**cfg, reward_clip=None))
     assert math.isfinite(unclipped.optimal_return()) and unclipped.optimal_return() < 10 / (1 - 0.9)
+
+
+# ---------------------------------------------------------------------- inputs accepted or named (round 3)
+def _typed_loss(**kwargs):
+    from torchrl.data import Bounded
+
+    from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
+
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, (1,))
+    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=0.0),
+                               actor_network=make_deterministic_actor(2, spec, num_cells=(8,)), **kwargs)
+    loss.make_value_estimator(gamma=GAMMA)
+    SoftUpdate(loss, tau=0.1)
+    return loss
+
+
+def test_reward_of_shape_b_with_flags_of_shape_b1_is_accepted():
+    """reward [B] beside done/terminated [B, 1] (and the reverse): one value per sample either way, the same loss."""
+    loss, data = _typed_loss(), _data()
+    expected = loss(data.clone())["loss_value"]
+    flat_reward = data.clone()
+    flat_reward["next", "reward"] = data["next", "reward"].squeeze(-1)
+    torch.testing.assert_close(loss(flat_reward)["loss_value"], expected)
+    flat_flags = data.clone()
+    for key in ("done", "terminated"):
+        flat_flags["next", key] = data["next", key].squeeze(-1)
+    torch.testing.assert_close(loss(flat_flags)["loss_value"], expected)
+
+
+def test_float64_batch_with_float32_networks_names_key_and_dtypes():
+    with pytest.raises(TypeError, match=r"Entry 'observation' has dtype torch.float64 but the value network's "
+                                        r"parameters are torch.float32"):
+        _typed_loss()(_data().apply(lambda x: x.double() if x.is_floating_point() else x))
+
+
+def test_integer_weights_are_accepted():
+    loss, data = _typed_loss(), _data()
+    counts = torch.arange(8).reshape(8, 1) % 3
+    as_ints, as_floats = data.clone(), data.clone()
+    as_ints["density_ratio"], as_floats["density_ratio"] = counts, counts.float()
+    ints, floats = loss(as_ints), loss(as_floats)
+    torch.testing.assert_close(ints["loss_value"], floats["loss_value"])
+    torch.testing.assert_close(ints["weight_ess"], floats["weight_ess"])
+
+
+@pytest.mark.parametrize("key, width", [("observation", 3), ("action", 2)])
+def test_an_input_width_other_than_the_network_is_named(key, width):
+    data = _data()
+    data[key] = torch.zeros(8, width)
+    if key == "observation":
+        data["next", key] = torch.zeros(8, width)
+    with pytest.raises(ValueError, match=rf"The value network reads 3 input feature\(s\), but the batch gives 4: "
+                                         rf".*'{key}' of shape \(8, {width}\) \({width} feature\(s\)\)"):
+        _typed_loss()(data)
+
+
+def test_discrete_action_index_out_of_range_is_named():
+    from torchrl_wbrm.modules import make_discrete_q_network
+
+    torch.manual_seed(0)
+    loss = WeightedBellmanLoss(make_discrete_q_network(2, 3, num_cells=(8,), action_space="categorical"))
+    loss.make_value_estimator(gamma=GAMMA)
+    data = _data()
+    data["action"] = torch.tensor([0, 1, 2, 5, 0, 1, 2, 0])
+    with pytest.raises(ValueError, match=r"Entry 'action' holds action indices from 0 to 5; the Q head has 3 actions"):
+        loss(data)
+    data["action"] = torch.tensor([0, 1, 2, 2, 0, 1, 2, 0])
+    assert torch.isfinite(loss(data)["loss_value"])
+
+
+def test_all_zero_weights_are_refused_by_name():
+    data = _data()
+    data["density_ratio"] = torch.zeros(8, 1)
+    with pytest.raises(ValueError, match=r"Every weight of the batch is 0 \(entry 'density_ratio'\)"):
+        _typed_loss()(data)
+
+
+@pytest.mark.parametrize("gamma", [math.nan, 1.5, -0.1, math.inf])
+def test_value_estimator_gamma_outside_0_1_is_refused(gamma):
+    with pytest.raises(ValueError, match=rf"gamma must be a finite number in \[0, 1\].*got {gamma!r}"):
+        _typed_loss().make_value_estimator(gamma=gamma)
+
+
+def test_ratio_width_other_than_the_network_is_named():
+    with pytest.raises(ValueError, match=r"The ratio network reads 3 input feature\(s\), but the batch gives 4: "
+                                         r"\('behaviour', 'observation'\) of shape \(6, 3\)"):
+        _ratio_loss()(_ratio_data(obs_b=3, obs_e=3))
+    with pytest.raises(TypeError, match=r"Entry \('behaviour', 'observation'\) has dtype torch.float64"):
+        _ratio_loss()(_ratio_data().apply(lambda x: x.double()))

@@ -40,7 +40,7 @@ def _data(n=64, seed=0, terminated=True):
 
 def _pair(**kwargs):
     torch.manual_seed(0)
-    q = make_q_network(3, 2, num_cells=(16, 16), activation="SiLU")
+    q = make_q_network(3, 2, initial_bias=0.0, num_cells=(16, 16), activation="SiLU")
     actor = make_deterministic_actor(3, SPEC, num_cells=(16,))
     fast = WeightedBellmanLoss(q, actor_network=actor, **kwargs)
     fast.make_value_estimator(gamma=0.9)
@@ -112,12 +112,12 @@ def test_actor_loss_fast_path_leaves_q_without_gradient():
 
 
 def test_fast_path_is_skipped_for_networks_it_cannot_call_on_tensors():
-    q = make_q_network(3, 2, num_cells=(8,))
+    q = make_q_network(3, 2, initial_bias=0.0, num_cells=(8,))
     safe_actor = make_deterministic_actor(3, SPEC, num_cells=(8,))
     safe_actor.safe = True
     loss = WeightedBellmanLoss(q, actor_network=safe_actor)
     assert loss._fast() is None
-    hooked = make_q_network(3, 2, num_cells=(8,))
+    hooked = make_q_network(3, 2, initial_bias=0.0, num_cells=(8,))
     hooked.register_forward_hook(lambda *args: None)
     assert FunctionalCall.build(hooked, WeightedBellmanLoss(hooked, action_spec=SPEC).value_network_params) is None
 

@@ -72,7 +72,7 @@ def test_compile_refuses_what_it_does_not_support():
     discrete = WeightedBellmanLoss(make_discrete_q_network(3, 4, num_cells=(8,)))
     with pytest.raises(ValueError, match="continuous actions"):
         CompiledBellmanLosses(discrete)
-    summed = WeightedBellmanLoss(make_q_network(3, 2, num_cells=(8,)), action_spec=SPEC, reduction="sum")
+    summed = WeightedBellmanLoss(make_q_network(3, 2, initial_bias=0.0, num_cells=(8,)), action_spec=SPEC, reduction="sum")
     with pytest.raises(ValueError, match="reduction"):
         CompiledBellmanLosses(summed)
 

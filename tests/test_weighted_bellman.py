@@ -1,6 +1,8 @@
 """Tests for WeightedBellmanLoss (Section 3, "Methodology") and weighted_bellman_residual."""
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -351,7 +353,7 @@ def test_set_keys_weight_changes_the_weight_entry():
 def test_input_entries_are_not_modified():
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, (1,))
-    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec))
+    loss = WeightedBellmanLoss(make_q_network(2, 1, initial_bias=0.0, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec))
     SoftUpdate(loss, tau=0.1)
     data = _continuous_data()
     before = data.clone()
@@ -372,7 +374,7 @@ def test_each_loss_backpropagates_only_into_its_own_network():
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, (1,))
     loss = WeightedBellmanLoss(
-        make_q_network(2, 1, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec, num_cells=(8,))
+        make_q_network(2, 1, initial_bias=0.0, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec, num_cells=(8,))
     )
     SoftUpdate(loss, tau=0.1)
     out = loss(_continuous_data())
@@ -405,7 +407,7 @@ def check_targets_change_only_when_the_updater_steps(loss, data) -> None:
 
 def test_target_parameters_change_only_when_the_updater_steps():
     torch.manual_seed(0)
-    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,)), actor_network=_linear_actor())
+    loss = WeightedBellmanLoss(make_q_network(2, 1, initial_bias=0.0, num_cells=(8,)), actor_network=_linear_actor())
     check_targets_change_only_when_the_updater_steps(loss, _continuous_data())
 
 
@@ -427,7 +429,7 @@ def test_state_dict_round_trip():
 
     def build():
         loss = WeightedBellmanLoss(
-            make_q_network(2, 1, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec, num_cells=(8,))
+            make_q_network(2, 1, initial_bias=0.0, num_cells=(8,)), actor_network=make_deterministic_actor(2, spec, num_cells=(8,))
         )
         SoftUpdate(loss, tau=0.1)
         return loss
@@ -669,3 +671,67 @@ def test_learns_q_star_of_a_linear_quadratic_problem_with_sampled_candidates():
     loss.make_value_estimator(gamma=0.5)
     _train_lq(loss, data, 1000, tau=0.1, batch=128)
     assert _q_error(q_net, q_star, data) < _constant_q_error(q_star, data) / EXACT_PROBLEM_FACTOR  # measured 0.017
+
+
+# ---------------------------------------------------------------- Q's starting value, and a Q past its reward bound
+def test_make_q_network_needs_initial_bias_and_initial_q_value_computes_it():
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_wbrm.modules import initial_q_value
+
+    with pytest.raises(TypeError, match=r"make_q_network needs initial_bias.*initial_q_value\(data, gamma\)"):
+        make_q_network(2, 1, num_cells=(8,))
+    rewards = torch.tensor([[1.0], [2.0], [3.0], [6.0]])
+    assert initial_q_value(rewards, 0.9) == pytest.approx(30.0)
+    td = TensorDict({("next", "reward"): rewards}, [4])
+    assert initial_q_value(td, 0.5) == pytest.approx(6.0)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4))
+    rb.extend(td)
+    assert initial_q_value(rb, 0.0) == pytest.approx(3.0)
+    with pytest.raises(ValueError, match=r"gamma must lie in \[0, 1\)"):
+        initial_q_value(rewards, 1.0)
+    with pytest.raises(KeyError, match="'next', 'reward'"):
+        initial_q_value(TensorDict({"reward": rewards}, [4]), 0.9)
+    q = make_q_network(2, 1, num_cells=(8,), initial_bias=initial_q_value(rewards, 0.9))
+    with torch.no_grad():
+        q.module[-1].weight.zero_()
+    out = q(TensorDict({"observation": torch.randn(3, 2), "action": torch.randn(3, 1)}, [3]))
+    torch.testing.assert_close(out["state_action_value"], torch.full((3, 1), 30.0))
+
+
+def _bound_batch(n=16):
+    g = torch.Generator().manual_seed(0)
+    return TensorDict({
+        "observation": torch.randn(n, 2, generator=g), "action": torch.rand(n, 1, generator=g) * 2 - 1,
+        "density_ratio": torch.ones(n, 1),
+        ("next", "observation"): torch.randn(n, 2, generator=g),
+        ("next", "reward"): torch.rand(n, 1, generator=g) * 2 - 1,  # |r| <= 1: every discounted return within 10
+        ("next", "done"): torch.zeros(n, 1, dtype=torch.bool),
+        ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
+    }, [n])
+
+
+def test_q_past_the_reward_bound_warns_once_naming_the_likely_cause():
+    """With γ = 0.9 and |r| <= 1 no return exceeds 10; a Q starting at 500 is past 2 · max|r| / (1 − γ): one
+    warning that names initial_bias, and ``q_bound_exceeded``; a Q near its targets gives none."""
+    spec = Bounded(-1.0, 1.0, (1,))
+
+    def loss_with(bias):
+        torch.manual_seed(0)
+        loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=bias),
+                                   actor_network=make_deterministic_actor(2, spec, num_cells=(8,)))
+        loss.make_value_estimator(gamma=0.9)
+        SoftUpdate(loss, tau=0.1)
+        return loss
+
+    blown = loss_with(500.0)
+    with pytest.warns(UserWarning, match=r"\|Q\(x, a\)\| reached .* past 2 · max\|r\| / \(1 − γ\).*initial_bias"):
+        blown(_bound_batch())
+    assert blown.q_bound_exceeded
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        blown(_bound_batch())  # once
+        fine = loss_with(0.0)
+        for _ in range(3):
+            fine(_bound_batch())
+    assert not fine.q_bound_exceeded

@@ -117,7 +117,7 @@ class SampledActionMaximiser(ActionMaximiser):
         >>> from tensordict import TensorDict
         >>> from torchrl.data import Bounded
         >>> from torchrl_wbrm.modules import make_q_network
-        >>> q = make_q_network(2, 1, num_cells=(8,))
+        >>> q = make_q_network(2, 1, initial_bias=0.0, num_cells=(8,))
         >>> maximiser = SampledActionMaximiser(Bounded(-1.0, 1.0, (1,)), num_samples=16)
         >>> maximiser(q, TensorDict({"observation": torch.randn(4, 2)}, [4])).shape
         torch.Size([4])

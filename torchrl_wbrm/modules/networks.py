@@ -17,6 +17,7 @@ SiLU for Q; the builders' own default stays ReLU.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -33,6 +34,7 @@ __all__ = [
     "EnsembleReduction",
     "NormalisedMLP",
     "build_mlp",
+    "initial_q_value",
     "make_deterministic_actor",
     "make_discrete_q_network",
     "make_q_network",
@@ -200,7 +202,7 @@ def make_q_network(
     num_cells: Sequence[int] = (256, 256),
     activation: str | type[nn.Module] = nn.ReLU,
     layer_norm: bool = False,
-    initial_bias: float = 0.0,
+    initial_bias: float | None = None,
     num_members: int = 1,
     ensemble_reduction: str = "mean",
     value_scale: float = 1.0,
@@ -220,8 +222,10 @@ def make_q_network(
         activation (type or str): hidden activation class or its :mod:`torch.nn` name (:func:`resolve_activation`).
             Defaults to :class:`torch.nn.ReLU`.
         layer_norm (bool): a ``LayerNorm`` after each hidden linear layer. Defaults to ``False``.
-        initial_bias (float): starting value of Q's constant. Set it to ``mean(r) / (1 − γ)`` so that Q starts
-            near the scale of its targets. Defaults to ``0.0``.
+        initial_bias (float): starting value of Q's constant; required. Use ``mean(r) / (1 − γ)`` of the data
+            (:func:`initial_q_value`), so that Q starts at the scale of its targets: a Q that starts far from them
+            (0 for LQR rewards of mean ≈ 9.6 at γ = 0.9, where the targets are ≈ 96) can blow up in an
+            offline loop with an actor (``WeightedBellmanLoss`` then warns). ``0.0`` suits rewards centred on 0.
         num_members (int): independently initialised MLPs whose outputs are reduced (:class:`EnsembleReduction`).
             Defaults to ``1``.
         ensemble_reduction (str): ``"mean"`` or ``"min"`` over the members. Defaults to ``"mean"``.
@@ -235,17 +239,69 @@ def make_q_network(
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> q = make_q_network(3, 2, num_cells=(16,), initial_bias=10.0)
+        >>> rewards = torch.full((100, 1), 2.0)
+        >>> q = make_q_network(3, 2, num_cells=(16,), initial_bias=initial_q_value(rewards, gamma=0.9))
         >>> td = TensorDict({"observation": torch.zeros(5, 3), "action": torch.zeros(5, 2)}, [5])
         >>> q(td)["state_action_value"].shape
         torch.Size([5, 1])
     """
+    if initial_bias is None:
+        raise TypeError(
+            "make_q_network needs initial_bias, the value Q starts at: mean(r) / (1 − γ) of the data "
+            "(initial_q_value(data, gamma)), or 0.0 for rewards centred on 0. A Q far below its targets can blow up "
+            "in an offline loop."
+        )
     net = _network(
         observation_dim + action_dim, 1, num_cells=num_cells, activation=activation, layer_norm=layer_norm,
         initial_bias=initial_bias, num_members=num_members, ensemble_reduction=ensemble_reduction,
         value_scale=value_scale, observation_loc=observation_loc, observation_scale=observation_scale,
     )
     return ValueOperator(net, in_keys=list(in_keys), out_keys=[out_key])
+
+
+def initial_q_value(data, gamma: float, *, reward_key: NestedKey = ("next", "reward")) -> float:
+    """``mean(r) / (1 − γ)``: the discounted value of the data's mean reward, where a Q network should start
+    (``make_q_network(..., initial_bias=initial_q_value(data, gamma))``).
+
+    Args:
+        data: the rewards (a tensor), a TensorDict holding them under ``reward_key``, or a torchrl replay buffer
+            (its whole storage is read).
+        gamma (float): the discount, in ``[0, 1)``.
+
+    Keyword Args:
+        reward_key (NestedKey): where a TensorDict or replay buffer holds the reward. Defaults to
+            ``("next", "reward")``.
+
+    Examples:
+        >>> import torch
+        >>> initial_q_value(torch.tensor([1.0, 3.0]), gamma=0.5)  # mean 2, over 1 − γ
+        4.0
+    """
+    try:
+        gamma = float(gamma)
+    except (TypeError, ValueError):
+        raise ValueError(f"gamma must be a number in [0, 1), got {gamma!r}.") from None
+    if not 0.0 <= gamma < 1.0:
+        raise ValueError(f"gamma must lie in [0, 1) for mean(r) / (1 − γ) to be finite, got {gamma!r}.")
+    if isinstance(data, torch.Tensor):
+        reward = data
+    else:
+        from torchrl.data import ReplayBuffer
+
+        if isinstance(data, ReplayBuffer):
+            if len(data) == 0:
+                raise ValueError("The replay buffer is empty: there are no rewards to average.")
+            data = data[:]
+        reward = data.get(reward_key, None)
+        if reward is None:
+            raise KeyError(f"Missing key {reward_key!r} (the reward); the data hold "
+                           f"{sorted(str(k) for k in data.keys(True, True))}.")
+    if reward.numel() == 0:
+        raise ValueError("There are no rewards to average (an empty tensor).")
+    mean = float(reward.double().mean())
+    if not math.isfinite(mean):
+        raise ValueError(f"The rewards' mean is {mean}: they hold non-finite values.")
+    return mean / (1.0 - gamma)
 
 
 def make_discrete_q_network(

@@ -1,6 +1,8 @@
 """Input checks shared by the losses: a missing key, a per-sample shape, a sign. """
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
@@ -146,3 +148,61 @@ def check_same_features(a: torch.Tensor, b: torch.Tensor, key_a, key_b, batch_a:
             f"Entry {key_a!r} has shape {tuple(a.shape)} and {key_b!r} has shape {tuple(b.shape)}: their per-sample "
             f"shapes {tuple(a.shape[len(batch_a):])} and {tuple(b.shape[len(batch_b):])} must match."
         )
+
+
+def input_width(network: torch.nn.Module) -> int | None:
+    """The number of input features of ``network`` where its structure shows it: a TensorDict module (or the first
+    module of a sequence) around the project's builders (:class:`~torchrl_wbrm.modules.NormalisedMLP`, an ensemble,
+    the ratio head) or torchrl's ``MLP`` / ``nn.Sequential`` starting with an ``nn.Linear``; ``None`` for anything
+    else (a feature map, a lazy layer, a custom module), which is then not checked."""
+    from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+    from torch import nn
+
+    from torchrl_wbrm.modules.density_ratio import _RatioHead
+    from torchrl_wbrm.modules.networks import EnsembleReduction, NormalisedMLP
+
+    module = network
+    for _ in range(16):
+        if isinstance(module, nn.Linear):
+            return None if isinstance(module, nn.LazyLinear) else int(module.in_features)
+        if isinstance(module, TensorDictSequential):
+            module = module.module[0] if len(module.module) else None
+        elif isinstance(module, TensorDictModuleBase) and isinstance(getattr(module, "module", None), nn.Module):
+            module = module.module
+        elif isinstance(module, NormalisedMLP):
+            module = module.net
+        elif isinstance(module, EnsembleReduction):
+            module = module.members[0]
+        elif isinstance(module, _RatioHead):
+            module = module.mlp
+        elif isinstance(module, nn.Sequential) and len(module):
+            module = module[0]
+        else:
+            return None
+    return None
+
+
+def check_input_width(width: int | None, entries: dict, batch_size: torch.Size, what: str) -> None:
+    """A ValueError naming every input key, its shape and its width when the per-sample widths of ``entries``
+    (key -> tensor) do not add up to ``width``, the number of input features of ``what``."""
+    if width is None:
+        return
+    widths = {key: math.prod(value.shape[len(batch_size):]) for key, value in entries.items()}
+    if sum(widths.values()) != width:
+        given = ", ".join(f"{key!r} of shape {tuple(entries[key].shape)} ({n} feature(s))" for key, n in widths.items())
+        raise ValueError(
+            f"The {what} reads {width} input feature(s), but the batch gives {sum(widths.values())}: {given}. "
+            "The data's observation (and action) widths must match the ones the network was built for."
+        )
+
+
+def check_input_dtype(dtype: torch.dtype | None, entries: dict, what: str) -> None:
+    """A TypeError naming the key and both dtypes when a floating input's dtype is not the network's."""
+    if dtype is None:
+        return
+    for key, value in entries.items():
+        if value.is_floating_point() and value.dtype != dtype:
+            raise TypeError(
+                f"Entry {key!r} has dtype {value.dtype} but the {what}'s parameters are {dtype}: cast the batch "
+                f"(e.g. batch.to({dtype})) or the networks to one dtype."
+            )

@@ -169,7 +169,7 @@ class MABOLoss(WeightedBellmanLoss):
         >>> from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
         >>> from torchrl_wbrm.objectives import MABOLoss
         >>> spec = Bounded(-1.0, 1.0, (1,))
-        >>> q = make_q_network(2, 1, num_cells=(32,))
+        >>> q = make_q_network(2, 1, initial_bias=0.0, num_cells=(32,))
         >>> actor = make_deterministic_actor(2, spec, num_cells=(32,))
         >>> adversary = ValueOperator(
         ...     MLP(in_features=3, out_features=1, num_cells=[32]),

@@ -14,11 +14,14 @@ from torchrl.objectives.common import LossModule
 from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import (
     check_finite,
+    check_input_dtype,
+    check_input_width,
     check_not_empty,
     check_reduction,
     check_same_features,
     check_sign,
     get_entry,
+    input_width,
     reduce_batch,
 )
 
@@ -257,14 +260,27 @@ class RobustDensityRatioLoss(LossModule):
             cache = self.__dict__["_fast_cache"] = (self.ratio_network, call, self.fast_path)
         return cache[1]
 
+    def _network_facts(self) -> tuple[int | None, torch.dtype | None]:
+        """``(input width, parameter dtype)`` of the ratio network (cached per network)."""
+        cache = self.__dict__.get("_facts_cache")
+        if cache is None or cache[0] is not self.ratio_network:
+            floats = [p for p in self.ratio_network_params.values(True, True) if p.is_floating_point()]
+            cache = (self.ratio_network, input_width(self.ratio_network), floats[0].dtype if floats else None)
+            self.__dict__["_facts_cache"] = cache
+        return cache[1], cache[2]
+
     def density_ratio(self, samples: TensorDictBase, name: str) -> torch.Tensor:
         """ŵ on one set of samples (``name`` is ``"behaviour"`` or ``"expert"`` and only used in error messages)."""
         key = self.tensor_keys.density_ratio
         tensors = [get_entry(samples, k, f"input of the ratio network, in the {name!r} samples")
                    for k in self.ratio_network.in_keys]
         check_not_empty(samples.batch_size, f"{name!r}")
-        for k, t in zip(self.ratio_network.in_keys, tensors):
-            check_finite(t, (name, *(k if isinstance(k, tuple) else (k,))))
+        named = {(name, *(k if isinstance(k, tuple) else (k,))): t for k, t in zip(self.ratio_network.in_keys, tensors)}
+        width, dtype = self._network_facts()
+        check_input_width(width, named, samples.batch_size, "ratio network")
+        check_input_dtype(dtype, named, "ratio network")
+        for k, t in named.items():
+            check_finite(t, k)
         fast = self._fast()
         if fast is not None:
             w = fast(self.ratio_network_params, *tensors)

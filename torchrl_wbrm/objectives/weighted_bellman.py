@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -27,12 +28,15 @@ from torchrl_wbrm.objectives._fast import FunctionalCall
 from torchrl_wbrm.objectives._utils import (
     as_bool_flag,
     check_finite,
+    check_input_dtype,
+    check_input_width,
     check_not_empty,
     check_reduction,
     check_same_features,
     check_sign,
     fast_get,
     get_entry,
+    input_width,
     per_sample,
     reduce_batch,
 )
@@ -190,7 +194,7 @@ class WeightedBellmanLoss(LossModule):
         >>> from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
         >>> from torchrl_wbrm.objectives import WeightedBellmanLoss
         >>> spec = Bounded(-1.0, 1.0, (1,))
-        >>> q = make_q_network(2, 1, num_cells=(32,))
+        >>> q = make_q_network(2, 1, initial_bias=0.0, num_cells=(32,))
         >>> actor = make_deterministic_actor(2, spec, num_cells=(32,))
         >>> loss = WeightedBellmanLoss(q, actor_network=actor, residual="squared")
         >>> loss.make_value_estimator(gamma=0.9)
@@ -255,6 +259,10 @@ class WeightedBellmanLoss(LossModule):
     #: Call plain networks on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through TensorDicts and
     #: ``to_module``; the same computation (tested). Set ``False`` on an instance to force the TensorDict path.
     fast_path: bool = True
+    #: Q(x, a) past ``q_bound_margin · max|r| / (1 − γ)`` (max|r| over the batches seen) warns once: no discounted
+    #: return of such rewards is that large, so Q is diverging. ``q_bound_exceeded`` then stays ``True``.
+    q_bound_margin: float = 2.0
+    q_bound_exceeded: bool = False
 
     value_network: TensorDictModule
     value_network_params: TensorDictParams
@@ -353,7 +361,17 @@ class WeightedBellmanLoss(LossModule):
         self._in_keys = None
 
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams) -> None:
-        """Builds the TD(0) target ``r + γ (1 − terminated) · next_value``; set γ here (default 0.99)."""
+        """Builds the TD(0) target ``r + γ (1 − terminated) · next_value``; set γ here (default 0.99).
+
+        ``gamma`` must be a finite number in ``[0, 1]`` (a NaN or a γ above 1 is refused, naming it)."""
+        if "gamma" in hyperparams:
+            gamma = hyperparams["gamma"]
+            try:
+                value = float(gamma)
+            except (TypeError, ValueError):
+                raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.") from None
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"gamma must be a finite number in [0, 1] (the discount), got {gamma!r}.")
         if value_type is None:
             value_type = self.default_value_estimator
         if isinstance(value_type, ValueEstimatorBase) or (
@@ -419,6 +437,16 @@ class WeightedBellmanLoss(LossModule):
         self._out_keys = values
 
     # ---------------------------------------------------------------- pieces
+    def _network_facts(self) -> tuple[int | None, torch.dtype | None]:
+        """``(input width, parameter dtype)`` of the value network (cached per network): what the batch's inputs must
+        add up to and be cast to."""
+        cache = self.__dict__.get("_facts_cache")
+        if cache is None or cache[0] is not self.value_network:
+            floats = [p for p in self.value_network_params.values(True, True) if p.is_floating_point()]
+            cache = (self.value_network, input_width(self.value_network), floats[0].dtype if floats else None)
+            self.__dict__["_facts_cache"] = cache
+        return cache[1], cache[2]
+
     def _fast(self) -> tuple[FunctionalCall, FunctionalCall | None] | None:
         """``(Q call, actor call)`` for the tensor path, or ``None`` where the TensorDict path is needed (a discrete
         head, a custom maximiser, a network that is not a plain TensorDictModule, other output keys)."""
@@ -485,6 +513,8 @@ class WeightedBellmanLoss(LossModule):
                 "the loss with use_weights=False"
             )
             weight = per_sample(weight, tensordict.batch_size, key).detach()
+            if not weight.is_floating_point():  # integer (or bool) weights: counts, 0/1 selections
+                weight = weight.to(self._network_facts()[1] or torch.get_default_dtype())
             if check:
                 check_sign(weight, key, strictly_positive=False)
         priority_key = self.tensor_keys.priority_weight
@@ -492,6 +522,8 @@ class WeightedBellmanLoss(LossModule):
             priority = fast_get(tensordict, priority_key)
             if priority is not None:
                 priority = per_sample(priority, tensordict.batch_size, priority_key).detach()
+                if not priority.is_floating_point():
+                    priority = priority.to(self._network_facts()[1] or torch.get_default_dtype())
                 check_sign(priority, priority_key, strictly_positive=False)
                 weight = priority if weight is None else weight * priority
         if weight is None:
@@ -519,7 +551,14 @@ class WeightedBellmanLoss(LossModule):
         if action.shape == (*batch, num_actions):  # one-hot
             return (action_value * action.to(action_value.dtype)).sum(-1)
         if action.shape in (batch, (*batch, 1)) and not action.is_floating_point():  # indices
-            return action_value.gather(-1, action.reshape(*batch, 1)).squeeze(-1)
+            if action.device.type == "cpu" and action.numel():
+                low, high = (int(v) for v in torch.aminmax(action.long()))
+                if low < 0 or high >= num_actions:
+                    raise ValueError(
+                        f"Entry {self.tensor_keys.action!r} holds action indices from {low} to {high}; the Q head has "
+                        f"{num_actions} actions, so indices must lie in [0, {num_actions - 1}]."
+                    )
+            return action_value.gather(-1, action.reshape(*batch, 1).long()).squeeze(-1)
         raise ValueError(
             f"Entry {self.tensor_keys.action!r} has shape {tuple(action.shape)} and dtype {action.dtype}; a Q head "
             f"over {num_actions} actions expects one-hot actions {(*batch, num_actions)} or integer indices "
@@ -609,25 +648,35 @@ class WeightedBellmanLoss(LossModule):
         check_not_empty(batch, "Bellman-residual")
         flags = {}
         checks: list[tuple[torch.Tensor, NestedKey]] = []
+        reward_shape = None
         for key, why in ((self.tensor_keys.reward, "the reward"), (self.tensor_keys.done, "episode-end flag"),
                          (self.tensor_keys.terminated, "episode-end flag; no bootstrap where it is True")):
             value = per_sample(get_entry(tensordict, _next(key), why), batch, _next(key))
             if key == self.tensor_keys.reward:
                 checks.append((value, _next(key)))
+                reward_shape = fast_get(tensordict, _next(key)).shape
             else:
                 raw = fast_get(tensordict, _next(key))
                 flag = as_bool_flag(raw, _next(key))
-                if flag.dtype is not raw.dtype:
+                if flag.shape != reward_shape:  # [B] and [B, 1] mixed: one value per sample either way
+                    flag = flag.reshape(reward_shape)
+                if flag is not raw:
                     flags[key] = flag
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
+        width, dtype = self._network_facts()
+        inputs, next_inputs = {}, {}
         for key in self._observation_keys:
             obs = get_entry(tensordict, key, "an input of the value network")
             next_obs = get_entry(next_td, key, "a next-state input of the value network")
             check_same_features(obs, next_obs, key, _next(key), batch, batch)
             checks += [(obs, key), (next_obs, _next(key))]
+            inputs[key], next_inputs[_next(key)] = obs, next_obs
         if not self.discrete:
-            checks.append((get_entry(tensordict, self.tensor_keys.action, "the action taken in the data"),
-                           self.tensor_keys.action))
+            action = get_entry(tensordict, self.tensor_keys.action, "the action taken in the data")
+            checks.append((action, self.tensor_keys.action))
+            inputs[self.tensor_keys.action] = action
+        check_input_dtype(dtype, {**inputs, **next_inputs}, "value network")
+        check_input_width(width, inputs, batch, "value network")
         if not _finite_and_non_negative([v for v, _ in checks], weight_to_check):
             if weight_to_check is not None:
                 check_sign(weight_to_check, self.tensor_keys.weight, strictly_positive=False)
@@ -663,6 +712,14 @@ class WeightedBellmanLoss(LossModule):
         """
         weight = self._weight(tensordict, check=False)
         q_value, target_value = self.bellman_error(tensordict, weight if self.use_weights else None)
+        if self.use_weights and weight.device.type == "cpu" and not bool(weight.any()):
+            raise ValueError(
+                f"Every weight of the batch is 0 (entry {self.tensor_keys.weight!r}"
+                f"{', times ' + repr(self.tensor_keys.priority_weight) if self._reads_priority(tensordict) else ''}): "
+                "the weighted residual would be 0 and its effective sample size undefined. Check the stored weights "
+                "(a collapsed density ratio?) or sample larger batches."
+            )
+        self._watch_q_bound(q_value, tensordict)
         loss = weighted_bellman_residual(
             q_value,
             target_value,
@@ -683,6 +740,44 @@ class WeightedBellmanLoss(LossModule):
                 diagnostics["weight_mean"] = weight.mean()
                 diagnostics["weight_ess"] = weight.sum().pow(2) / weight.pow(2).sum()
         return loss, diagnostics
+
+    def _reads_priority(self, tensordict: TensorDictBase) -> bool:
+        key = self.tensor_keys.priority_weight
+        return (self.use_prioritized_weights in (True, "auto") and not (self.use_weights and key == self.tensor_keys.weight)
+                and fast_get(tensordict, key) is not None)
+
+    @torch.no_grad()
+    def _watch_q_bound(self, q_value: torch.Tensor, tensordict: TensorDictBase) -> None:
+        """Warn once when ``max |Q(x, a)|`` passes ``q_bound_margin · max|r| / (1 − γ)``, with max|r| over the
+        batches seen: no discounted return of these rewards is that large. Checked on every call for CPU tensors and
+        every 100th call elsewhere (each check reads two numbers back from the device)."""
+        if self.q_bound_exceeded:
+            return
+        calls = self.__dict__.get("_q_bound_calls", 0) + 1
+        self.__dict__["_q_bound_calls"] = calls
+        if q_value.device.type != "cpu" and calls % 100:
+            return
+        gamma = float(self.value_estimator.gamma)
+        if not gamma < 1.0:
+            return
+        reward = fast_get(tensordict, _next(self.tensor_keys.reward))
+        q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64),
+                                    reward.abs().amax().to(torch.float64)]).tolist()
+        r_max = max(self.__dict__.get("_max_abs_reward", 0.0), r_max)
+        self.__dict__["_max_abs_reward"] = r_max
+        bound = self.q_bound_margin * r_max / (1.0 - gamma)
+        if r_max > 0 and q_max > bound:
+            self.q_bound_exceeded = True
+            warnings.warn(
+                f"WeightedBellmanLoss: |Q(x, a)| reached {q_max:.4g}, past {self.q_bound_margin:g} · max|r| / (1 − γ) "
+                f"= {bound:.4g} (max|r| = {r_max:.4g} over the batches seen, γ = {gamma:g}), larger than any discounted "
+                "return of these rewards: Q is diverging. Likely cause: Q started far from its targets (set "
+                "make_q_network's initial_bias to mean(r) / (1 − γ), e.g. initial_q_value(data, gamma)); else a "
+                "learning rate too high for the bootstrap, or a target updated too fast (delay_value=True with a "
+                "smaller SoftUpdate tau). This warning is given once per loss.",
+                UserWarning,
+                stacklevel=3,
+            )
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``−mean_i Q(x_i, μ(x_i))`` (Q frozen), optionally ŵ-weighted and with TD3+BC's cloning term.
