@@ -42,7 +42,7 @@ def session_dir() -> Path:
 
 @functools.lru_cache(maxsize=None)
 def mountain_car_datasets() -> dict:
-    """``mountain_car/expert-v0`` (12 expert episodes) and ``mountain_car/behaviour-v0`` (4 random episodes and 24
+    """``examples/mountain_car/expert-v0`` (12 expert episodes) and ``.../behaviour-v0`` (4 random episodes and 24
     noisy-expert ones) under a session folder, written with ``create_dataset_from_buffers`` (no jax)."""
     from torchrl_wbrm.data.minari_examples import make_mountain_car_datasets
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from minari_helpers import ROOT, minari_wandb_run, mountain_car_datasets
+from minari_helpers import minari_wandb_run, mountain_car_datasets
 from torchrl_wbrm.data import EnvConfig, make_offline_datasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
@@ -344,15 +344,11 @@ def test_console_verbose_switch(caplog):
 @pytest.mark.parametrize("env_name", ["lqr_exp1", "mountain_car"])
 def test_make_dataset_writes_minari(tmp_path, env_name):
     """recipes/make_dataset.py format=minari: the project's own collections as Minari datasets, read back whole."""
-    import importlib.util
-
     from omegaconf import OmegaConf
 
+    from torchrl_wbrm import cli as recipe
     from torchrl_wbrm.training.config import MakeDatasetConfig
 
-    spec = importlib.util.spec_from_file_location("make_dataset_recipe", ROOT / "recipes" / "make_dataset.py")
-    recipe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(recipe)
     sizes = {"lqr_exp1": {"env.kind": "lqr", "env.lqr_data.behaviour_episodes": 20, "env.lqr_data.expert_episodes": 10,
                           "env.lqr_data.parallel_envs": 10},
              "mountain_car": {"env.kind": "mountain_car", "env.mountain_car_data.expert_transitions": 400,
@@ -362,8 +358,8 @@ def test_make_dataset_writes_minari(tmp_path, env_name):
                                                   *(f"{k}={v}" for k, v in sizes.items())]))
     recipe._write_minari(cfg, tmp_path)
     own = make_offline_datasets(cfg.env, seed=0)
-    minari = MinariDataConfig(expert=f"{env_name}/expert-v0", behaviour=f"{env_name}/behaviour-v0",
-                              data_path=str(tmp_path))
+    minari = MinariDataConfig(expert=f"make_dataset/{env_name}_seed0/expert-v0",
+                              behaviour=f"make_dataset/{env_name}_seed0/behaviour-v0", data_path=str(tmp_path))
     back = make_minari_datasets(minari, seed=0)
     own_sizes, back_sizes = own.sizes(), back.sizes()
     assert back_sizes["expert_samples"] == own_sizes["expert_samples"]

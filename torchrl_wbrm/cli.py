@@ -67,30 +67,91 @@ def wbrm_offline(cfg: DictConfig) -> None:
     print(f"run directory: {run_dir}")
 
 
+def refuse(err: Exception, command: str) -> None:
+    """A refused setting or output: one line on stderr (no traceback), exit status 2."""
+    print(f"{command}: refused: {err}", file=sys.stderr)
+    sys.exit(2)
+
+
+def minari_ids(cfg) -> list[str]:
+    """``format=minari``'s two ids: ``<minari_namespace>/expert-v0`` and ``<minari_namespace>/behaviour-v0``, the
+    namespace ``make_dataset/<env.name>_seed<seed>`` by default (apart from the examples' ``examples/<env>``)."""
+    namespace = cfg.minari_namespace or f"make_dataset/{cfg.env.name}_seed{cfg.seed}"
+    return [f"{namespace}/expert-v0", f"{namespace}/behaviour-v0"]
+
+
+def check_minari_out(cfg, out: Path) -> None:
+    """Before any collecting: the two ids are valid and new under ``out`` (unless ``overwrite=true``)."""
+    from torchrl_wbrm.data.minari_data import check_new_minari_ids
+
+    ids = minari_ids(cfg)
+    setting = f"minari_namespace=<name> (now {ids[0].rsplit('/', 1)[0]!r}) or overwrite=true (replaces them)"
+    check_new_minari_ids(ids, out, setting=setting, overwrite=cfg.overwrite)
+
+
+def check_torchrl_out(out: Path, overwrite: bool) -> None:
+    """Before any collecting: ``out`` is new or empty, or (``overwrite=true``) holds only a dataset saved by
+    :meth:`~torchrl_wbrm.data.OfflineDatasets.save`; other files are never written beside nor removed."""
+    from torchrl_wbrm.data.datasets import PARTS
+
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"out={out} is a file; make_dataset writes a dataset directory: choose another out=.")
+    entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if not entries:
+        return
+    ours = {"metadata.json", *PARTS}
+    if not (out / "metadata.json").is_file():
+        raise FileExistsError(f"out={out} is a non-empty directory that holds no dataset ({', '.join(entries[:5])}"
+                              f"{', ...' if len(entries) > 5 else ''}); nothing was collected. make_dataset writes "
+                              f"into a new or empty directory: choose another out=.")
+    if not overwrite:
+        raise FileExistsError(f"out={out} already holds a dataset; nothing was collected. Set overwrite=true to "
+                              f"replace it, or choose another out=.")
+    others = [name for name in entries if name not in ours]
+    if others:
+        raise FileExistsError(f"out={out} holds a dataset and other files ({', '.join(others[:5])}); overwrite=true "
+                              f"replaces only a directory that holds a dataset alone: move them, or choose another "
+                              f"out=.")
+
+
+def _remove_dataset(out: Path) -> None:
+    """Remove a saved dataset (``metadata.json`` first, so a half-removed one is never read as whole)."""
+    import shutil
+
+    from torchrl_wbrm.data.datasets import PARTS
+
+    (out / "metadata.json").unlink(missing_ok=True)
+    for name in PARTS:
+        shutil.rmtree(out / name, ignore_errors=True)
+
+
 def _write_minari(cfg, out: Path) -> None:
     """``format=minari``: the expert's and the behaviour's collections as two Minari datasets under ``out``."""
-    from torchrl_wbrm.data.minari_data import transitions_to_episodes, write_minari_dataset
+    from torchrl_wbrm.data.minari_data import delete_minari_datasets, transitions_to_episodes, write_minari_dataset
 
+    check_minari_out(cfg, out)
     task = get_task(cfg.env)
     datasets, behaviour, expert = task.recorded_collections(seed=cfg.seed, storage=cfg.storage)
     sizes = datasets.sizes()
     if behaviour.shape[0] != sizes["transitions"] + sizes["behaviour_samples"] or expert.shape[0] != sizes["expert_samples"]:
         raise RuntimeError(f"The recorded collections ({behaviour.shape[0]} behaviour, {expert.shape[0]} expert "
                            f"steps) are not the sets' {sizes}.")
-    namespace = cfg.minari_namespace or cfg.env.name
     kind = cfg.env.kind
     env_kwargs = task.minari_env_kwargs(behaviour)  # a gymnasium id, or (LQR) the spaces only
+    ids = minari_ids(cfg)
+    replaced = delete_minari_datasets(ids, out) if cfg.overwrite else []
     written = {}
-    for part, data in (("expert", expert), ("behaviour", behaviour)):
-        dataset_id = f"{namespace}/{part}-v0"
+    for part, data, dataset_id in (("expert", expert, ids[0]), ("behaviour", behaviour, ids[1])):
         ds = write_minari_dataset(dataset_id, transitions_to_episodes(data), data_path=out,
                                   algorithm_name=f"torchrl_wbrm {kind} {part} policy, seed {cfg.seed}",
-                                  description=f"torchrl_wbrm {cfg.env.name} {part} data (recipes/make_dataset.py)",
+                                  description=f"torchrl_wbrm {cfg.env.name} {part} data (make_dataset, seed "
+                                              f"{cfg.seed})",
                                   **env_kwargs)
         written[dataset_id] = (ds.total_episodes, ds.total_steps)
     print(datasets.summary())
     for dataset_id, (episodes, steps) in written.items():
-        print(f"Minari dataset {dataset_id}: {episodes} episodes, {steps} steps")
+        print(f"Minari dataset {dataset_id}: {episodes} episodes, {steps} steps"
+              + (" (replaced the old one: overwrite=true)" if dataset_id in replaced else ""))
     print(f"saved under the Minari data path {out}")
 
 
@@ -98,23 +159,33 @@ def _write_minari(cfg, out: Path) -> None:
 def make_dataset(cfg: DictConfig) -> None:
     """Collect an offline dataset (D, S^b, S^e) with torchrl's Collector, save it and print what it holds."""
     start = time.perf_counter()
-    if cfg.format not in ("torchrl", "minari"):
-        raise ValueError(f"format={cfg.format!r} is not allowed: choose 'torchrl' or 'minari'.")
-    task = get_task(cfg.env)
-    if not task.collects_data:
-        raise ValueError(f"env={cfg.env.name} (env.kind={cfg.env.kind}) reads its datasets; make_dataset collects "
-                         f"the project's own envs.")
     out = Path(cfg.out)
     if not out.is_absolute():
         out = Path(get_original_cwd()) / out
+    try:  # every setting and the output, before any collecting: a refusal is one line
+        if cfg.format not in ("torchrl", "minari"):
+            raise ValueError(f"format={cfg.format!r} is not allowed: choose 'torchrl' or 'minari'.")
+        task = get_task(cfg.env)
+        if not task.collects_data:
+            raise ValueError(f"env={cfg.env.name} (env.kind={cfg.env.kind}) reads its datasets; make_dataset "
+                             f"collects the project's own envs.")
+        if cfg.format == "torchrl":
+            check_torchrl_out(out, cfg.overwrite)
+        else:
+            check_minari_out(cfg, out)
+    except (ValueError, FileExistsError) as err:
+        refuse(err, "make_dataset")
     if cfg.format != "torchrl":  # format=minari
         _write_minari(cfg, out)
         print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
         return
     datasets = task.make_datasets(seed=cfg.seed, storage=cfg.storage)
+    replaced = (out / "metadata.json").is_file()
+    if replaced:  # overwrite=true, checked above
+        _remove_dataset(out)
     datasets.save(out)
     print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
     print(datasets.summary())
     if "optimal_return" in datasets.metadata:
         print(f"optimal_return (exact): {datasets.metadata['optimal_return']:.4f}")
-    print(f"saved to {out}")
+    print(f"saved to {out}" + (" (replaced the dataset there: overwrite=true)" if replaced else ""))

@@ -36,6 +36,7 @@ episodes (``recipes/make_dataset.py format=minari``).
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import warnings
 from dataclasses import dataclass
@@ -55,6 +56,8 @@ __all__ = [
     "OneHotActions",
     "minari_data_root",
     "resolve_minari_dataset",
+    "check_new_minari_ids",
+    "delete_minari_datasets",
     "read_minari_transitions",
     "write_minari_dataset",
     "transitions_to_episodes",
@@ -113,6 +116,54 @@ def resolve_minari_dataset(ref: str, data_path: str | os.PathLike | None = None)
         f"(Minari data path {root}; set MINARI_DATASETS_PATH or env.minari.data_path). Nothing is downloaded at run "
         f"time: fetch it once with `minari download {ref}` where there is a network, or give the dataset's folder."
     )
+
+
+def check_new_minari_ids(dataset_ids: Iterable[str], data_path: str | os.PathLike | None = None, *,
+                         setting: str, overwrite: bool = False) -> list[Path]:
+    """Refuse to write over existing Minari datasets, before anything is collected.
+
+    Each of ``dataset_ids`` must be a valid Minari id (``namespace/name-vN``). If any already exists under the Minari
+    data path (``data_path``, see :func:`minari_data_root`), a ``FileExistsError`` names the id, its folder, the data
+    path and ``setting``: the writer's setting that picks other ids (e.g. ``"minari_namespace=<name>"``).
+    ``overwrite=True`` checks the ids' syntax only. Returns the ids' folders.
+
+        >>> import tempfile
+        >>> folders = check_new_minari_ids(["demo/expert-v0"], tempfile.mkdtemp(), setting="--namespace")
+        >>> folders[0].parts[-2:]
+        ('demo', 'expert-v0')
+    """
+    from minari.dataset.minari_dataset import parse_dataset_id
+
+    root = minari_data_root(data_path)
+    folders = []
+    for dataset_id in dataset_ids:
+        try:
+            parse_dataset_id(dataset_id)
+        except ValueError as err:
+            raise ValueError(f"{dataset_id!r} is not a Minari dataset id (namespace/name-vN): set {setting} to "
+                             f"letters, digits, '_', '-' and '/'. ({err})") from None
+        folder = root / dataset_id
+        if folder.exists() and not overwrite:
+            raise FileExistsError(
+                f"The Minari dataset {dataset_id!r} already exists ({folder}, Minari data path {root}); nothing was "
+                f"collected. Choose other ids with {setting}, another data path, or delete that dataset.")
+        folders.append(folder)
+    return folders
+
+
+def delete_minari_datasets(dataset_ids: Iterable[str], data_path: str | os.PathLike | None = None) -> list[str]:
+    """Delete those of ``dataset_ids`` that exist under the Minari data path (``minari.delete_dataset``); returns
+    the ids deleted."""
+    import minari
+
+    root = minari_data_root(data_path)
+    deleted = []
+    for dataset_id in dataset_ids:
+        if (root / dataset_id).exists():
+            with _minari_path(root), contextlib.redirect_stdout(io.StringIO()):  # its own "deleted!" line
+                minari.delete_dataset(dataset_id)
+            deleted.append(dataset_id)
+    return deleted
 
 
 def _open(ref: str, data_path=None):

@@ -23,11 +23,14 @@ is another env's reshaped (gymnasium's ``ReshapeObservation``; ``CartPole-v1`` a
 observation_shape=(2, 2))`` writes the CartPole datasets on it.
 
 Written with :func:`~torchrl_wbrm.data.minari_data.write_minari_dataset` (``minari[hdf5]`` only), so
-``env=minari`` can read them back; nothing is downloaded::
+``env=minari`` can read them back; nothing is downloaded. Their ids are ``examples/<env>/expert-v0`` and
+``examples/<env>/behaviour-v0`` (namespace ``examples/<env>``, ``--namespace`` to change it), apart from those of
+``recipes/make_dataset.py format=minari`` (``make_dataset/<env>_seed<seed>/...``); ids that already exist are refused
+before anything is collected::
 
     python -m torchrl_wbrm.data.minari_examples --env mountain_car --data-path datasets/minari  # or --env cartpole
-    python recipes/wbrm_offline.py env=minari env.minari.expert=datasets/minari/mountain_car/expert-v0 \\
-        env.minari.behaviour=datasets/minari/mountain_car/behaviour-v0 q.bc_alpha=2.5
+    python recipes/wbrm_offline.py env=minari env.minari.expert=examples/mountain_car/expert-v0 \\
+        env.minari.behaviour=examples/mountain_car/behaviour-v0 env.minari.data_path=datasets/minari q.bc_alpha=2.5
 """
 from __future__ import annotations
 
@@ -37,7 +40,7 @@ from typing import Callable
 
 import numpy as np
 
-from torchrl_wbrm.data.minari_data import write_minari_dataset
+from torchrl_wbrm.data.minari_data import check_new_minari_ids, write_minari_dataset
 
 __all__ = [
     "pendulum_expert_action",
@@ -53,6 +56,9 @@ __all__ = [
     "MOUNTAIN_CAR",
     "CARTPOLE",
 ]
+
+#: the examples' Minari namespaces are ``examples/<name>`` (``--namespace`` / ``namespace=`` to change)
+NAMESPACE = "examples"
 
 PENDULUM = "Pendulum-v1"
 MOUNTAIN_CAR = "MountainCarContinuous-v0"
@@ -155,6 +161,14 @@ def collect_gym_episodes(env_id: str, policy: Callable[[np.ndarray, np.random.Ge
     return out
 
 
+def _new_ids(namespace: str, data_path) -> dict:
+    """``<namespace>/expert-v0`` and ``<namespace>/behaviour-v0``, refused (before any collecting) if either exists
+    under ``data_path``."""
+    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
+    check_new_minari_ids(ids.values(), data_path, setting=f"--namespace (now {namespace!r})")
+    return ids
+
+
 def _noisy_expert(std: float):
     def policy(obs, rng):
         return np.clip(pendulum_expert_action(obs) + rng.normal(0.0, std, 1).astype(np.float32), -2.0, 2.0)
@@ -167,14 +181,14 @@ def _uniform(obs, rng):
 
 
 def make_pendulum_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 20, random_episodes: int = 40,
-                           noisy_expert_episodes: int = 20, seed: int = 0, namespace: str = "pendulum") -> dict:
+                           noisy_expert_episodes: int = 20, seed: int = 0, namespace: str = f"{NAMESPACE}/pendulum") -> dict:
     """Write ``<namespace>/expert-v0`` and ``<namespace>/behaviour-v0`` under ``data_path``; returns their ids and
     paths. Expert: the heuristic with action noise 0.1; behaviour: ``random_episodes`` of uniform torques, then
     ``noisy_expert_episodes`` of the heuristic with noise 1.0 (other seeds than the expert's)."""
+    ids = _new_ids(namespace, data_path)
     expert = collect_gym_episodes(PENDULUM, _noisy_expert(0.1), expert_episodes, seed=seed)
     behaviour = collect_gym_episodes(PENDULUM, _uniform, random_episodes, seed=seed + 10_000)
     behaviour += collect_gym_episodes(PENDULUM, _noisy_expert(1.0), noisy_expert_episodes, seed=seed + 20_000)
-    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
     write_minari_dataset(ids["expert"], expert, data_path=data_path, env=PENDULUM, eval_env=PENDULUM,
                          algorithm_name="swing-up heuristic, action noise 0.1",
                          description="torchrl_wbrm example: Pendulum-v1 expert")
@@ -186,7 +200,7 @@ def make_pendulum_datasets(data_path: str | os.PathLike, *, expert_episodes: int
 
 def make_mountain_car_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 20, random_episodes: int = 6,
                                noisy_expert_episodes: int = 30, seed: int = 0,
-                               namespace: str = "mountain_car") -> dict:
+                               namespace: str = f"{NAMESPACE}/mountain_car") -> dict:
     """Write ``<namespace>/expert-v0`` (the expert, noise 0.1) and ``<namespace>/behaviour-v0``
     (``random_episodes`` of uniform actions, then ``noisy_expert_episodes`` of the expert with noise 1) under
     ``data_path``; returns their ids and paths."""
@@ -196,10 +210,10 @@ def make_mountain_car_datasets(data_path: str | os.PathLike, *, expert_episodes:
     def uniform(obs, rng):
         return rng.uniform(-1.0, 1.0, 1).astype(np.float32)
 
+    ids = _new_ids(namespace, data_path)
     ex = collect_gym_episodes(MOUNTAIN_CAR, expert(0.1), expert_episodes, seed=seed)
     behaviour = collect_gym_episodes(MOUNTAIN_CAR, uniform, random_episodes, seed=seed + 10_000)
     behaviour += collect_gym_episodes(MOUNTAIN_CAR, expert(1.0), noisy_expert_episodes, seed=seed + 20_000)
-    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
     write_minari_dataset(ids["expert"], ex, data_path=data_path, env=MOUNTAIN_CAR, eval_env=MOUNTAIN_CAR,
                          algorithm_name="0.9 sign(v) + 0.1 U(-1, 1)",
                          description="torchrl_wbrm example: MountainCarContinuous-v0 expert")
@@ -211,7 +225,7 @@ def make_mountain_car_datasets(data_path: str | os.PathLike, *, expert_episodes:
 
 def make_cartpole_datasets(data_path: str | os.PathLike, *, expert_episodes: int = 10, random_episodes: int = 20,
                            noisy_expert_episodes: int = 20, noise: float = 0.5, seed: int = 0,
-                           observation_shape=None, namespace: str = "cartpole") -> dict:
+                           observation_shape=None, namespace: str = f"{NAMESPACE}/cartpole") -> dict:
     """Write ``<namespace>/expert-v0`` (the expert, a random action with probability 0.05) and
     ``<namespace>/behaviour-v0`` (``random_episodes`` of uniform actions, then ``noisy_expert_episodes`` of the expert
     taking a random action with probability ``noise``) on ``CartPole-v1`` (a ``Discrete(2)`` action) under
@@ -225,10 +239,10 @@ def make_cartpole_datasets(data_path: str | os.PathLike, *, expert_episodes: int
 
         return policy
 
+    ids = _new_ids(namespace, data_path)
     ex = collect_gym_episodes(env_id, expert(0.05), expert_episodes, seed=seed)
     behaviour = collect_gym_episodes(env_id, expert(1.0), random_episodes, seed=seed + 10_000)
     behaviour += collect_gym_episodes(env_id, expert(noise), noisy_expert_episodes, seed=seed + 20_000)
-    ids = {"expert": f"{namespace}/expert-v0", "behaviour": f"{namespace}/behaviour-v0"}
     write_minari_dataset(ids["expert"], ex, data_path=data_path, env=env_id, eval_env=env_id,
                          algorithm_name="1 if θ + 0.5 θ' > 0 else 0; a random action with probability 0.05",
                          description=f"torchrl_wbrm example: {env_id} expert")
@@ -244,10 +258,16 @@ def main(argv=None) -> None:
     parser.add_argument("--env", choices=("mountain_car", "pendulum", "cartpole"), default="mountain_car")
     parser.add_argument("--data-path", default="datasets/minari", help="Minari data path to write under")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--namespace", default=None,
+                        help=f"Minari namespace of the two datasets (default: {NAMESPACE}/<env>); existing ids are "
+                             f"refused before anything is collected")
     args = parser.parse_args(argv)
     make = {"mountain_car": make_mountain_car_datasets, "pendulum": make_pendulum_datasets,
             "cartpole": make_cartpole_datasets}[args.env]
-    out = make(args.data_path, seed=args.seed)
+    try:
+        out = make(args.data_path, seed=args.seed, namespace=args.namespace or f"{NAMESPACE}/{args.env}")
+    except (FileExistsError, ValueError) as err:
+        raise SystemExit(f"minari_examples: {err}") from None
     print(f"expert:    {out['expert_path']}\nbehaviour: {out['behaviour_path']}")
 
 

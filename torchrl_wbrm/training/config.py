@@ -265,7 +265,10 @@ class MakeDatasetConfig:
         format: ``"torchrl"`` (this project's verified memory-mapped sets, :meth:`OfflineDatasets.save`) or
             ``"minari"`` (two Minari datasets, ``<minari_namespace>/expert-v0`` and ``<minari_namespace>/behaviour-v0``,
             written under ``out``, which then is a Minari data path).
-        minari_namespace: the Minari namespace of the two datasets (``None``: ``env.name``).
+        minari_namespace: the Minari namespace of the two datasets (``None``: ``make_dataset/<env.name>_seed<seed>``,
+            apart from ``torchrl_wbrm.data.minari_examples``' ``examples/<env>``).
+        overwrite: replace the dataset already at ``out`` (``format=minari``: the two ids) instead of refusing it
+            (checked before any collecting).
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -274,6 +277,7 @@ class MakeDatasetConfig:
     storage: str = "lazy"
     format: str = "torchrl"
     minari_namespace: Optional[str] = None
+    overwrite: bool = False
 
 
 #: the settings whose values come from a fixed set; ``algo``'s set is the registry's (:func:`_choices`)
