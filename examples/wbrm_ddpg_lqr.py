@@ -22,7 +22,7 @@ from torchrl.record.loggers.csv import CSVLogger
 from torchrl_wbrm.data import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.envs import LQREnv
 from torchrl_wbrm.evaluation import lqr_paired_regret
-from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
+from torchrl_wbrm.modules import initial_q_value, make_deterministic_actor, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
 from torchrl_wbrm.ratio import fit_density_ratio, store_density_ratio
 
@@ -50,9 +50,8 @@ store_density_ratio(replay_buffer, ratio_network=fit.network, key="density_ratio
 print(f"stage 1: best held-out loss {fit.best_loss:.4f} at step {fit.best_step} of {fit.steps_run}")
 
 # ---- stage 2: the DDPG loop with WeightedBellmanLoss as the loss module
-mean_reward = replay_buffer[:]["next", "reward"].mean().item()
 q = make_q_network(env.config.state_dim, env.config.action_dim, num_cells=cells, activation="SiLU",
-                   initial_bias=mean_reward / (1 - gamma))
+                   initial_bias=initial_q_value(replay_buffer, gamma))  # mean(r) / (1 − γ): where the targets are
 actor = make_deterministic_actor(env.config.state_dim, action_spec, num_cells=cells)
 loss = WeightedBellmanLoss(q, actor_network=actor, residual="squared", delay_value=True)
 loss.make_value_estimator(gamma=gamma)

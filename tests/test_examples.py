@@ -1,7 +1,7 @@
 """The examples/ scripts run (``--quick``) and learn: each asserts an outcome against a computed reference, with a
 margin, not only that the script finished.
 
-All four run in one subprocess (one interpreter start and one torch/torchrl import instead of four), each through
+All five run in one subprocess (one interpreter start and one torch/torchrl import instead of five), each through
 ``runpy`` as ``python examples/<name>.py --quick`` would run it; their printed output is parsed.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from tests.references import reference_regrets
 #: one xdist worker runs this module (``pytest -n 2 --dist loadfile``): its shared runs are computed once
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr"]
+EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr", "weighted_iql_lqr"]
 
 DRIVER = """
 import contextlib, io, json, runpy, sys, time
@@ -91,6 +91,27 @@ def test_weighted_ddpg_learns(outputs, regrets):
     """TorchRL's DDPGLoss with ŵ as priority_weight: regret below half the behaviour mean's."""
     weighted = _figure(outputs["weighted_ddpg_lqr"], "ŵ-weighted DDPG")
     assert weighted < regrets["behaviour_mean"] / 2, weighted
+
+
+def test_weighted_iql_learns(outputs, regrets):
+    """TorchRL's IQLLoss with ŵ through WeightedLoss, and its unweighted twin: both well below the behaviour mean's
+    regret (the actors start near the zero action, regret 0.36), the weighted one by a margin of a fifth; the two
+    differ (ŵ reached the loss)."""
+    text = outputs["weighted_iql_lqr"]
+    weighted, plain = _figure(text, "ŵ-weighted IQL"), _figure(text, "IQL")
+    assert weighted < 0.8 * regrets["behaviour_mean"], weighted
+    assert plain < regrets["behaviour_mean"], plain
+    assert weighted != plain
+    assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
+
+
+def test_the_readme_shows_the_whole_reuse_script():
+    """The README's reuse script is examples/wbrm_ddpg_lqr.py itself, in full (the run above runs it)."""
+    readme = (ROOT / "README.md").read_text()
+    shown = re.search(r"<!-- example-source: wbrm_ddpg_lqr -->\n```python\n(.*?)```\n<!-- /example-source -->", readme,
+                      re.DOTALL)
+    assert shown, "README lacks the example-source block"
+    assert shown.group(1) == (ROOT / "examples" / "wbrm_ddpg_lqr.py").read_text()
 
 
 def test_every_example_is_tested():
