@@ -735,3 +735,35 @@ def test_q_past_the_reward_bound_warns_once_naming_the_likely_cause():
         for _ in range(3):
             fine(_bound_batch())
     assert not fine.q_bound_exceeded
+
+
+def test_a_hand_written_lqr_loop_started_at_zero_warns():
+    """The loop of examples/wbrm_ddpg_lqr.py with Q started at 0 (LQR exp1's targets are about 96): Q runs away
+    with the actor pinned at the bound, and the loss says so, naming initial_bias, before 500 steps."""
+    from torchrl_wbrm.data import LQRDataConfig, make_lqr_datasets
+    from torchrl_wbrm.envs import LQREnv
+
+    torch.manual_seed(0)
+    data = make_lqr_datasets("exp1", LQRDataConfig(behaviour_episodes=300, expert_episodes=150), seed=0).transitions
+    env = LQREnv("exp1")
+    spec = Bounded(-env.config.action_bound, env.config.action_bound, (env.config.action_dim,))
+    loss = WeightedBellmanLoss(
+        make_q_network(env.config.state_dim, env.config.action_dim, num_cells=(64, 64), activation="SiLU",
+                       initial_bias=0.0),
+        actor_network=make_deterministic_actor(env.config.state_dim, spec, num_cells=(64, 64)), use_weights=False)
+    loss.make_value_estimator(gamma=env.config.gamma)
+    updater = SoftUpdate(loss, tau=0.05)
+    critic = torch.optim.Adam(loss.value_network_params.values(True, True), lr=1e-3)
+    actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=1e-3)
+    with pytest.warns(UserWarning, match=r"Q is diverging.*initial_bias"):
+        for _ in range(500):
+            out = loss(data.sample(256))
+            critic.zero_grad()
+            actor.zero_grad()
+            (out["loss_value"] + out["loss_actor"]).backward()
+            critic.step()
+            actor.step()
+            updater.step()
+            if loss.q_bound_exceeded:
+                break
+    assert loss.q_bound_exceeded
