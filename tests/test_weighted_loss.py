@@ -334,3 +334,21 @@ def test_reduction_sum_and_none():
     torch.testing.assert_close(summed["loss_bc"], (per_sample.sum(-1) * w).sum())
     rows = _call(WeightedLoss(_build("BCLoss", "none"), reduction="none"), td.clone().set("density_ratio", w))
     torch.testing.assert_close(rows["loss_bc"], per_sample.mean(-1) * w)
+
+
+def test_dtype_moves_and_modes_reach_the_wrapped_loss():
+    inner = _build("IQLLoss", "none")
+    inner.make_value_estimator(gamma=0.9)
+    loss = WeightedLoss(inner).double()
+    assert all(p.dtype == torch.float64 for p in inner.parameters())
+    td = _data("IQLLoss").apply(lambda x: x.double() if x.is_floating_point() else x)
+    out = _call(loss, td.set("density_ratio", torch.ones(B, dtype=torch.float64)))
+    assert out["loss_qvalue"].dtype == torch.float64
+    loss.eval()
+    assert not inner.training
+    loss.train()
+    assert inner.training
+    copy = WeightedLoss(_build("IQLLoss", "none"))
+    copy.make_value_estimator(gamma=0.9)
+    copy.load_state_dict(loss.float().state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(copy.parameters(), inner.parameters()))

@@ -232,6 +232,17 @@ class WeightedLoss(LossModule):
                 raise
             return getattr(wrapped, item)
 
+    def _apply(self, fn, *args, **kwargs):
+        # the state is the wrapped loss's: ``to()``, ``double()``, ... go through it (once), erasing its caches
+        self._erase_cache()
+        self.loss_module._apply(fn, *args, **kwargs)
+        return self
+
+    def train(self, mode: bool = True):
+        self.loss_module.train(mode)
+        self.training = mode
+        return self
+
     def set_keys(self, **kwargs) -> None:
         """Set ``weight`` / ``priority_weight`` here and every other key on the wrapped loss (which refuses the keys
         it does not know, naming them)."""
