@@ -171,3 +171,65 @@ def test_make_dataset_refuses_an_existing_dataset_unless_overwrite(tmp_path, mon
         assert code == 2 and "holds no dataset (notes.txt)" in err, err
     assert sorted(p.name for p in (work / "mine").iterdir()) == ["notes.txt"]
     assert sorted(p.name for p in work.iterdir()) == ["ds", "mine"]  # no outputs/ folder, no .log
+
+
+# ---------------------------------------------------------------------- the printed resume command
+def test_resume_restores_the_runs_own_overrides(tmp_path):
+    from torchrl_wbrm.cli import with_run_overrides
+
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text("- env=lqr_exp3\n- q.lr=0.003\n- seed=2\n- overwrite=true\n")
+    assert with_run_overrides([f"resume={run}"]) == ["env=lqr_exp3", "q.lr=0.003", "seed=2", f"resume={run}"]
+    # the command line wins over the record, and a second resume (its record rewritten with them) finds them again
+    args = with_run_overrides([f"resume={run}", "q.steps=40"])
+    assert args == ["env=lqr_exp3", "q.lr=0.003", "seed=2", f"resume={run}", "q.steps=40"]
+    (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {a}\n" for a in args))
+    assert with_run_overrides([f"resume={run}"]) == ["env=lqr_exp3", "q.lr=0.003", "seed=2", "q.steps=40",
+                                                     f"resume={run}"]
+    assert with_run_overrides(["q.lr=0.1"]) == ["q.lr=0.1"]  # not a resume
+    assert with_run_overrides([f"resume={tmp_path / 'none'}"]) == [f"resume={tmp_path / 'none'}"]
+
+
+def test_the_printed_resume_command_works_as_printed(tmp_path):
+    """A run started with overrides (and the default dated run directory) is interrupted; the command it prints is
+    run exactly as printed and finishes the run with the overrides it started with."""
+    import shlex
+    import signal
+    import time
+
+    overrides = [*TINY, "q.steps=400", "q.eval_every=400", "checkpoint_every=40", "q.lr=0.002", "seed=3",
+                 "logger=none", "plots=false"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg",
+           "PATH": f"{os.path.dirname(sys.executable)}{os.pathsep}{os.environ.get('PATH', '')}"}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), *overrides], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.time() + 180
+    while not list(tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*/checkpoint.pt")) and time.time() < deadline \
+            and proc.poll() is None:
+        time.sleep(0.2)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    command = err.strip().splitlines()[-1].split("Resume with: ", 1)[1]
+    assert command.startswith(f"python {ROOT / 'recipes' / 'wbrm_offline.py'} resume=") and "_seed3" in command
+    resumed = subprocess.run(shlex.split(command), cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    (run_dir,) = tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*_seed3")
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["status"] == "finished" and results["seed"] == 3 and results["config"]["q"]["lr"] == 0.002
+    assert results["final"]["step"] == 400
+    assert len(list(tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*"))) == 1  # no stray directory for the resume
+
+
+@pytest.mark.parametrize("argv0, command", [
+    ("/venv/bin/wbrm-offline", "wbrm-offline"),
+    ("/site-packages/torchrl_wbrm/__main__.py", "python -m torchrl_wbrm"),
+    ("recipes/wbrm_offline.py", "python recipes/wbrm_offline.py"),
+])
+def test_the_resume_command_names_how_the_recipe_was_started(monkeypatch, argv0, command):
+    from torchrl_wbrm.cli import recipe_command
+
+    monkeypatch.setattr(sys, "argv", [argv0, "seed=1"])
+    assert recipe_command() == command

@@ -30,8 +30,59 @@ __all__ = ["wbrm_offline", "make_dataset"]
 register_configs()
 
 
+#: settings of a run's own overrides that a resume does not repeat (``overwrite=true`` would clear the run)
+NOT_RESUMED = ("resume", "overwrite")
+
+
+def _override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def with_run_overrides(args: list[str]) -> list[str]:
+    """The command-line overrides ``args`` of a resume (``resume=X``) with the run's own overrides first.
+
+    A run started with overrides (``env=lqr_exp3 q.lr=0.003``) is resumed with the same config: they are read from
+    the run's Hydra record (``X/.hydra/overrides.yaml``, which a resume rewrites with them, so a second resume finds
+    them too) and put before ``args``, which win: a key given in ``args`` is not repeated. Without ``resume=`` or
+    without a record, ``args`` are returned as they are.
+
+        >>> with_run_overrides(["q.steps=10"])
+        ['q.steps=10']
+    """
+    given = [a for a in args if _override_key(a) == "resume" and "=" in a]
+    if not given:
+        return list(args)
+    record = Path(given[-1].split("=", 1)[1].strip("'\"")) / ".hydra" / "overrides.yaml"
+    if not record.is_file():  # the guard says what is missing
+        return list(args)
+    keys = {_override_key(a) for a in args}
+    saved = [str(o) for o in OmegaConf.load(record) or []]
+    return [*(o for o in saved if _override_key(o) not in keys and _override_key(o) not in NOT_RESUMED), *args]
+
+
+def recipe_command() -> str:
+    """How this recipe was started, for the resume command it prints: ``wbrm-offline``, ``python -m torchrl_wbrm``
+    or ``python <script>``."""
+    script = Path(sys.argv[0])
+    if script.name == "__main__.py" and script.parent.name == "torchrl_wbrm":
+        return "python -m torchrl_wbrm"
+    if script.suffix != ".py":  # the installed console script
+        return script.name
+    return f"python {sys.argv[0]}"
+
+
+def wbrm_offline() -> None:
+    """``wbrm-offline [overrides]`` (``python recipes/wbrm_offline.py``, ``python -m torchrl_wbrm``): the recipe,
+    with a resume's run overrides restored (:func:`with_run_overrides`), so ``resume=X`` alone continues the run."""
+    from torchrl_wbrm.training import guards
+
+    guards.RESUME_COMMAND = recipe_command()
+    sys.argv[1:] = with_run_overrides(sys.argv[1:])
+    _wbrm_offline_app()
+
+
 @hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")
-def wbrm_offline(cfg: DictConfig) -> None:
+def _wbrm_offline_app(cfg: DictConfig) -> None:
     """Deep Weighted Bellman Residual Minimization, offline: stage 1 fits the density ratio ŵ, stage 2 fits Q*.
 
     Writes results.json, history.json, training_curve.png, evaluation.png, logs/ and checkpoint.pt in the run
@@ -49,7 +100,7 @@ def wbrm_offline(cfg: DictConfig) -> None:
     except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
         if (run_dir / "checkpoint.pt").is_file():
             print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
-                  f"python recipes/wbrm_offline.py resume={run_dir}", file=sys.stderr)
+                  f"{recipe_command()} resume={run_dir}", file=sys.stderr)
         else:
             print(f"Interrupted before the first checkpoint; no checkpoint was written to {run_dir}.", file=sys.stderr)
         sys.exit(130)

@@ -89,6 +89,10 @@ class TrainingDiverged(RuntimeError):
         )
 
 
+#: the command the resume hint of :class:`RunInterrupted` starts with (the entry point sets how it was started)
+RESUME_COMMAND = "python recipes/wbrm_offline.py"
+
+
 class RunInterrupted(Exception):
     """SIGINT or SIGTERM stopped the run after a checkpoint; ``signal_name``, ``stage``, ``step``, ``run_dir``."""
 
@@ -99,7 +103,7 @@ class RunInterrupted(Exception):
         where = f"during the {during} " if during else ""
         super().__init__(
             f"{self.signal_name} received: stopped {where}in stage {stage!r} at step {step}, checkpoint written to "
-            f"{self.run_dir / CHECKPOINT}. Resume with: python recipes/wbrm_offline.py resume={self.run_dir}"
+            f"{self.run_dir / CHECKPOINT}. Resume with: {RESUME_COMMAND} resume={self.run_dir}"
         )
 
     @property
