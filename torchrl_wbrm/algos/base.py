@@ -35,6 +35,7 @@ __all__ = [
     "descend",
     "descend_all",
     "deterministic_actor",
+    "ExpertCloning",
     "q_network",
     "q_reader",
     "scalars",
@@ -180,7 +181,48 @@ def deterministic_actor(ctx: AlgoContext):
     return make_deterministic_actor(ctx.observation_dim, ctx.action_spec, **actor_options(ctx)).to(ctx.device)
 
 
-def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, updater=None, every_step=False) -> StepFn:
+class ExpertCloning:
+    """The actor's support term: TD3+BC's cloning, toward the expert's actions in S^e, in unit actions.
+
+    The actor step minimises ``λ · (−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x_e) − a_e) / h‖² / m``, with
+    ``λ = α / mean_D |Q(x, μ(x))|`` (Fujimoto & Gu's normalisation: the Q term has the same size whatever the reward
+    scale) and ``h`` the half-width of the action box (the cloning term has the same size whatever the action
+    bounds; ``m`` the action dimension). S^e, the expert samples the method already holds for stage 1, keeps μ on the
+    expert's support; Q then moves it only where Q says it pays. Its batches are drawn from a torchrl replay buffer
+    over S^e with the global generator (checkpointed with the run).
+
+    Args:
+        actor: the actor (its parameters are the loss's ``actor_network_params``).
+        expert_samples: S^e, a TensorDict with the actor's in_keys and ``"action"``.
+        action_spec: the action box.
+        alpha: α.
+        batch_size: S^e samples per actor step.
+    """
+
+    def __init__(self, actor, expert_samples: TensorDictBase, action_spec: Bounded, *, alpha: float,
+                 batch_size: int) -> None:
+        from torchrl_wbrm.data import make_replay_buffer
+
+        if not alpha > 0:
+            raise ValueError(f"q.expert_bc_alpha must be > 0 or null, got {alpha!r}.")
+        self.actor, self.alpha = actor, float(alpha)
+        keys = list(actor.in_keys) + ["action"]
+        self.buffer = make_replay_buffer(expert_samples.select(*keys), batch_size=batch_size)
+        self.centre = ((action_spec.space.high + action_spec.space.low) / 2).to(torch.float32)
+        self.half_width = ((action_spec.space.high - action_spec.space.low) / 2).clamp_min(1e-6).to(torch.float32)
+
+    def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params) -> tuple[torch.Tensor, dict]:
+        """``loss_q = −mean_D Q(x, μ(x))``; returns the actor's loss and the cloning term (detached)."""
+        expert = self.buffer.sample()
+        with params.to_module(self.actor):
+            mu = self.actor(expert.select(*self.actor.in_keys))["action"]
+        bc = ((mu - expert["action"]) / self.half_width.to(mu.device)).pow(2).mean()
+        lmbd = self.alpha / q_mean_abs.detach().clamp_min(1e-6)
+        return lmbd * loss_q + bc, {"expert_bc_loss": bc.detach()}
+
+
+def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, updater=None, every_step=False,
+                 cloning: ExpertCloning | None = None) -> StepFn:
     """The step of the Bellman-residual family (wbrm, fqi): a Q step, and every ``q.actor_delay`` steps an actor step.
 
     ``updater`` is stepped after each actor step (``SoftUpdate``) or, with ``every_step``, after every Q step
@@ -204,7 +246,11 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
         if updater is not None and every_step:
             updater.step()
         if i % qc.actor_delay == 0 and loss.has_actor:
-            loss_actor, _ = losses.actor_loss(batch)
+            loss_actor, actor_figures = losses.actor_loss(batch)
+            if cloning is not None:
+                loss_actor, bc_figures = cloning(loss_actor, actor_figures["actor_q_mean"].abs(),
+                                                 loss.actor_network_params)
+                out.update(bc_figures)
             descend(loss_actor, optimisers["actor"])
             out["loss_actor"] = loss_actor.detach()
             if updater is not None and not every_step:
@@ -235,15 +281,19 @@ def bellman_residual_algo(ctx: AlgoContext, *, weighted: bool) -> Algo:
         action_spec=ctx.action_spec,
         num_action_samples=qc.num_action_samples,
         weight_actor_loss=qc.weight_actor_loss,
-        bc_alpha=qc.bc_alpha,
+        bc_alpha=qc.bc_alpha or None,  # 0: off
     )
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = ForeachSoftUpdate(loss, tau=qc.target_tau) if qc.bootstrap == "target" else None
     optimisers = critic_actor_optimisers(loss, ctx.cfg)
+    cloning = None
+    if qc.expert_bc_alpha:  # the actor's support term, toward S^e's actions (validate_config: not with bc_alpha)
+        cloning = ExpertCloning(actor, ctx.task.datasets.expert_samples[:], ctx.action_spec,
+                                alpha=qc.expert_bc_alpha, batch_size=qc.batch_size)
     return Algo(
         loss=loss,
         optimisers=optimisers,
-        step=bellman_step(loss, optimisers, ctx.cfg, updater=updater),
+        step=bellman_step(loss, optimisers, ctx.cfg, updater=updater, cloning=cloning),
         policy=actor,
         q_value=q_reader(loss.value_network, loss.value_network_params),
         bellman_loss=loss,

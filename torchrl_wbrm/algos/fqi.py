@@ -35,7 +35,7 @@ def build_fqi(ctx: AlgoContext) -> Algo:
     value_network, actor = q_network(ctx), deterministic_actor(ctx)
     loss = WeightedBellmanLoss(value_network, actor_network=actor, residual="squared", delay_value=True,
                                use_weights=False, maximiser=qc.maximiser, action_spec=ctx.action_spec,
-                               num_action_samples=qc.num_action_samples, bc_alpha=qc.bc_alpha)
+                               num_action_samples=qc.num_action_samples, bc_alpha=qc.bc_alpha or None)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = HardUpdate(loss, value_network_update_interval=ctx.cfg.baselines.fqi.target_update_every)
     optimisers = critic_actor_optimisers(loss, ctx.cfg)

@@ -76,7 +76,7 @@ def build_mabo(ctx: AlgoContext) -> Algo:
     loss = MABOLoss(value_network, _adversary(ctx, mc), actor_network=actor, adversary=mc.adversary,
                     w_bound=mc.w_bound, critic_l2=mc.critic_l2, delay_value=mc.delay_value,
                     maximiser=qc.maximiser, action_spec=ctx.action_spec, num_action_samples=qc.num_action_samples,
-                    bc_alpha=qc.bc_alpha)
+                    bc_alpha=qc.bc_alpha or None)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = ForeachSoftUpdate(loss, tau=qc.target_tau) if mc.delay_value else None
     optimisers = critic_actor_optimisers(loss, ctx.cfg)

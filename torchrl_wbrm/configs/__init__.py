@@ -1,5 +1,5 @@
 """The recipes' Hydra configs, shipped inside the package: ``wbrm_offline.yaml``, ``make_dataset.yaml`` and the
-``env/``, ``env_defaults/`` and ``logger/`` groups (the ``algo`` group's nodes are the registry's, stored by
+``env/`` and ``logger/`` groups (the ``algo`` group's nodes are the registry's, stored by
 :func:`~torchrl_wbrm.training.config.register_configs`).
 
 :data:`CONFIG_DIR` is their directory, in a clone and in an installed wheel alike; compose a recipe's config with

@@ -287,6 +287,10 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         "expert_mean_return": _mean_return(expert),
         "behaviour_episodes": int(torch.unique(behaviour["episode"]).numel()),
         "expert_episodes": int(torch.unique(expert["episode"]).numel()),
+        # Minari's reference scores (random actions, the expert), where the dataset records them: D4RL's normalised
+        # score of the evaluated returns
+        "ref_min_score": _reference_score(expert_ds, behaviour_ds, "ref_min_score"),
+        "ref_max_score": _reference_score(expert_ds, behaviour_ds, "ref_max_score"),
     }
     return OfflineDatasets.from_behaviour_and_expert(
         behaviour,
@@ -297,6 +301,15 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         storage=storage,
         scratch_dir=scratch_dir,
     )
+
+
+def _reference_score(expert_ds, behaviour_ds, key: str) -> float | None:
+    """The datasets' ``ref_min_score`` / ``ref_max_score`` (the expert dataset's first), or ``None``."""
+    for ds in (expert_ds, behaviour_ds):
+        value = ds.storage.metadata.get(key)
+        if value is not None:
+            return float(value)
+    return None
 
 
 def _mean_return(data: TensorDictBase) -> float | None:
@@ -444,6 +457,9 @@ def write_minari_dataset(
     algorithm_name: str | None = None,
     description: str | None = None,
     author: str | None = None,
+    ref_min_score: float | None = None,
+    ref_max_score: float | None = None,
+    num_episodes_average_score: int = 100,
 ):
     """Write ``episodes`` as the Minari dataset ``dataset_id`` under ``data_path`` (default: Minari's data path).
 
@@ -451,6 +467,8 @@ def write_minari_dataset(
     and ``truncations`` (``T`` rows). Written with ``minari.create_dataset_from_buffers`` from ``EpisodeBuffer``
     objects (``minari[hdf5]`` only; no jax). ``env`` (a registered gymnasium id) records the env and its spaces; an
     env that gymnasium does not know (the LQR systems) needs ``observation_space`` and ``action_space`` instead.
+    ``ref_min_score`` / ``ref_max_score`` (both or neither) are the returns of random actions and of the expert,
+    Minari's reference scores for D4RL's normalised score (averaged over ``num_episodes_average_score`` episodes).
     Returns the ``MinariDataset``.
     """
     import minari
@@ -475,6 +493,8 @@ def write_minari_dataset(
         return minari.create_dataset_from_buffers(
             dataset_id=dataset_id, buffer=buffers, env=env, eval_env=eval_env, algorithm_name=algorithm_name,
             observation_space=observation_space, action_space=action_space, description=description, author=author,
+            ref_min_score=ref_min_score, ref_max_score=ref_max_score,
+            num_episodes_average_score=num_episodes_average_score,
         )
 
 

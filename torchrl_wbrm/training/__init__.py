@@ -7,6 +7,7 @@ from torchrl_wbrm.training.config import (
     RatioConfig,
     WBRMConfig,
     register_configs,
+    resolve_defaults,
     validate_config,
 )
 from torchrl_wbrm.training.trainer import WBRMTrainer, get_rng_state, set_rng_state, set_seed
@@ -25,5 +26,6 @@ __all__ = [
     "set_rng_state",
     "set_seed",
     "shape_weights",
+    "resolve_defaults",
     "validate_config",
 ]

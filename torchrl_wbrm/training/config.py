@@ -25,6 +25,7 @@ __all__ = [
     "RatioConfig",
     "WBRMConfig",
     "register_configs",
+    "resolve_defaults",
     "validate_config",
 ]
 
@@ -87,17 +88,21 @@ class RatioConfig:
 class QConfig:
     """Stage 2: Q (and the actor) by the weighted Bellman residual (Section 3).
 
+    Settings shown as "null: the env's" take the value of the env's task
+    (:attr:`~torchrl_wbrm.data.tasks.Task.TRAINING_DEFAULTS`, applied by :func:`resolve_defaults`) unless set; the
+    recipe and the Python API resolve them the same way.
+
     Attributes:
         residual: ``"squared"`` (mean ŵ δ²) or ``"absolute_mean"`` (the paper's |mean ŵ δ|).
         bootstrap: ``"target"`` (a frozen target network updated by SoftUpdate) or ``"residual_gradient"``
             (gradients through both Q terms).
         maximiser: ``"actor"`` (max ≈ Q(x', μ(x'))) or ``"sampled"`` (uniform candidates plus μ(x')).
         num_action_samples: candidates for ``"sampled"``.
-        gamma: discount (``None``: the env's, 0.9 for LQR; 0.99 for MountainCar).
+        gamma: discount (null: the env's; 0.9 for LQR, 0.9999 for MountainCar, 0.99 for Minari datasets).
         num_cells, actor_num_cells: hidden widths of Q and of the actor (their number is the depth). Every algo's
             critics and actors use them.
         activation, actor_activation: hidden activations of Q (and of every critic/value network) and of the actor,
-            the name of any :mod:`torch.nn` activation. Q's default is GELU, a smooth activation: Q* of the LQR task is
+            the name of any :mod:`torch.nn` activation (Q's: null, the env's). Q's default is GELU, a smooth activation: Q* of the LQR task is
             a quadratic and the actor follows ∂Q/∂a, which a piecewise-linear ReLU network fits poorly. SiLU replaced
             ReLU first; ``recipes/q_accuracy_study.py`` then found GELU's held-out Bellman residual lower than
             SiLU's beyond the noise on five LQR systems, and its rule adopted it.
@@ -105,20 +110,28 @@ class QConfig:
         ensemble_size: independently initialised Q networks whose outputs are reduced by ``ensemble_reduction``
             (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
         value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
-        normalise_observations: feed every network ``(x − mean) / std`` of D's observations (a fixed input layer).
+        normalise_observations: feed every network ``(x − mean) / std`` of D's observations (a fixed input layer;
+            null: the env's, on except for LQR, whose states are standardised already).
         lr_schedule: ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser; the default: on
             LQR exp1 it cut the paired regret from 0.0075 to 0.0034 and lowered the held-out Bellman residual,
             ``recipes/q_accuracy_study.py``) or ``"constant"``.
-        steps, batch_size, lr, actor_lr: the optimisers' budget (Adam).
+        steps, batch_size, lr, actor_lr: the optimisers' budget (Adam; ``steps`` null: the env's, 3000, 4000 for
+            MountainCar).
         target_tau: SoftUpdate's τ.
         actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
         weight_actor_loss: weight the actor's objective by ŵ too.
-        bc_alpha: coefficient of a TD3+BC behaviour-cloning term (``None``: off; the paper has none).
+        bc_alpha: α of a TD3+BC behaviour-cloning term toward D's actions (null: the env's, off except
+            MountainCar's 10; 0: off; the paper has none).
+        expert_bc_alpha: α of the actor's cloning of S^e's expert actions,
+            ``λ·(−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x) − a)/h‖²/m``, λ = α / mean|Q| (``wbrm`` and ``brm`` with a
+            continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's, 2.5 (0 for
+            MountainCar, which clones D); 0: off (the paper's actor, which only maximises Q). Setting one of
+            ``bc_alpha`` and ``expert_bc_alpha`` turns the other off unless it is set too (both on is refused).
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
-        eval_every: steps between evaluations.
+        eval_every: steps between evaluations (null: the env's).
         compile: compile the value and actor losses with ``torch.compile`` (wbrm, brm, fqi; the inductor cache goes
             to ``<run dir>/torch_compile_cache``, the compile time to ``results.json``'s ``compile_seconds``).
     """
@@ -130,16 +143,16 @@ class QConfig:
     gamma: Optional[float] = None
     num_cells: List[int] = field(default_factory=lambda: [256, 256])
     actor_num_cells: List[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "GELU"
+    activation: Optional[str] = None
     actor_activation: str = "ReLU"
     layer_norm: bool = False
     actor_layer_norm: bool = False
     ensemble_size: int = 1
     ensemble_reduction: str = "mean"
     value_scale: float = 1.0
-    normalise_observations: bool = False
+    normalise_observations: Optional[bool] = None
     lr_schedule: str = "cosine"
-    steps: int = 3000
+    steps: Optional[int] = None
     batch_size: int = 256
     lr: float = 1e-3
     actor_lr: float = 1e-3
@@ -147,10 +160,11 @@ class QConfig:
     actor_delay: int = 2
     weight_actor_loss: bool = False
     bc_alpha: Optional[float] = None
+    expert_bc_alpha: Optional[float] = None
     grad_clip: Optional[float] = None
     init_bias: bool = True
     holdout_fraction: float = 0.1
-    eval_every: int = 500
+    eval_every: Optional[int] = None
     compile: bool = False
 
 
@@ -159,14 +173,16 @@ class EvalConfig:
     """Evaluation, always on fresh episodes with its own seeds.
 
     Attributes:
-        episodes: final evaluation episodes (LQR: parallel episodes for the paired regret, ≥ 1000; MountainCar: 100).
-        train_episodes: episodes of the periodic evaluations during training.
+        episodes: final evaluation episodes (null: the env's; LQR 1000 parallel episodes for the paired regret,
+            100 elsewhere).
+        train_episodes: episodes of the periodic evaluations during training (null: the env's; LQR 500, MountainCar
+            100, Minari 10).
         seed: evaluation seed (distinct from the data seed).
         q_samples: expert (and behaviour) state-actions for the Q* and ratio errors (LQR).
     """
 
-    episodes: int = 1000
-    train_episodes: int = 500
+    episodes: Optional[int] = None
+    train_episodes: Optional[int] = None
     seed: int = 1_000_000
     q_samples: int = 10_000
 
@@ -305,8 +321,38 @@ def _choices() -> dict[str, tuple]:
     return {"algo": tuple(ALGOS), **_CHOICES}
 
 
+def resolve_defaults(cfg):
+    """``cfg`` with every setting it leaves null (``None``) set from the env's task
+    (:meth:`~torchrl_wbrm.data.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
+    activation, the step budget and the evaluation sizes. A copy; settings already given are kept as they are.
+
+    The trainer resolves the config it is given this way, so ``WBRMTrainer(WBRMConfig(env=...))`` runs the same
+    method as ``python recipes/wbrm_offline.py env=...``.
+    """
+    import copy
+
+    from omegaconf import DictConfig
+
+    cfg = cfg.copy() if isinstance(cfg, DictConfig) else copy.deepcopy(cfg)
+    # the actor's support term: one of the two cloning terms. Setting one (> 0) leaves the other off, so the env's
+    # default term applies only when neither is set.
+    if cfg.q.bc_alpha and cfg.q.expert_bc_alpha is None:
+        cfg.q.expert_bc_alpha = 0.0
+    if cfg.q.expert_bc_alpha and cfg.q.bc_alpha is None:
+        cfg.q.bc_alpha = 0.0
+    for key, value in get_task(cfg.env).training_defaults().items():
+        section, name = key.split(".")
+        node = getattr(cfg, section)
+        if getattr(node, name) is None:
+            setattr(node, name, value)
+    return cfg
+
+
 def validate_config(cfg) -> None:
-    """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting."""
+    """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting.
+
+    Settings left null are checked as :func:`resolve_defaults` fills them."""
+    cfg = resolve_defaults(cfg)
     for key, allowed in _choices().items():
         value = _get(cfg, key)
         if value not in allowed:
@@ -335,6 +381,8 @@ def validate_config(cfg) -> None:
         raise ValueError(f"ratio.holdout_fraction must lie in (0, 1), got {cfg.ratio.holdout_fraction}.")
     if cfg.ratio.divergence == "basu" and not cfg.ratio.alpha > 0:
         raise ValueError(f"ratio.alpha must be > 0 (use ratio.divergence=kl for the limit), got {cfg.ratio.alpha}.")
+    if len(cfg.ratio.bounds) != 2:
+        raise ValueError(f"ratio.bounds must hold two numbers [Φ, Ψ] with 0 < Φ < 1 ≤ Ψ, got {list(cfg.ratio.bounds)}.")
     low, high = cfg.ratio.bounds
     if not 0 < low < 1 <= high:
         raise ValueError(f"ratio.bounds=[Φ, Ψ] needs 0 < Φ < 1 ≤ Ψ (Assumption 4.1), got {list(cfg.ratio.bounds)}.")
@@ -346,6 +394,13 @@ def validate_config(cfg) -> None:
         raise ValueError(f"ratio.clip must be > 0 or null, got {cfg.ratio.clip}.")
     if cfg.q.gamma is not None and not 0 < cfg.q.gamma < 1:
         raise ValueError(f"q.gamma must lie in (0, 1) or be null, got {cfg.q.gamma}.")
+    for key in ("q.bc_alpha", "q.expert_bc_alpha"):
+        value = _get(cfg, key)
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{key} must be >= 0 (0: off) or null (the env's), got {value!r}.")
+    if cfg.q.bc_alpha and cfg.q.expert_bc_alpha:
+        raise ValueError(f"q.bc_alpha={cfg.q.bc_alpha} (cloning D's actions) and q.expert_bc_alpha="
+                         f"{cfg.q.expert_bc_alpha} (cloning S^e's) are both on: set one of them to 0.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)

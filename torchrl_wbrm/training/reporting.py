@@ -1,7 +1,9 @@
 """Human-readable summaries of a run's results."""
 from __future__ import annotations
 
-__all__ = ["ci_cell", "load_results", "results_table", "split_by_status", "summarise"]
+import math
+
+__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "split_by_status", "summarise"]
 
 
 def _n(value, spec: str) -> str:
@@ -39,6 +41,10 @@ def summarise(results: dict) -> str:
         if "behaviour_mean_return" in data or "expert_mean_return" in data:  # the datasets' own, beside it
             lines.append(f"datasets' mean episode returns: behaviour {_n(data.get('behaviour_mean_return'), '.2f')}  "
                          f"expert {_n(data.get('expert_mean_return'), '.2f')}")
+        if "normalised_score" in f:  # D4RL's score from the datasets' reference scores
+            lines.append(f"normalised score {_n(f['normalised_score'], '.1f')} ± {_n(f.get('normalised_score_ci'), '.1f')}"
+                         f"   (0: random actions, 100: the expert; behaviour data "
+                         f"{_n(f.get('data_behaviour_normalised_score'), '.1f')})")
     if w:
         ess_fraction = w.get("ess_fraction")
         lines.append(
@@ -64,9 +70,27 @@ def summarise(results: dict) -> str:
             "carry no information (ŵ is at its lower bound on " + _n(100 * check.get("at_lower_bound", 0), ".0f")
             + "% of D); lower ratio.lr or check the data (ratio.source=none runs the unweighted method on purpose)."
         )
+    below = results.get("behaviour_check") or {}
+    if below.get("below"):
+        lines.append(
+            f"FLAG below_behaviour: the policy's return {_n(below['return'], '.4g')} ± {_n(below['return_ci'], '.3g')} "
+            f"is below the behaviour data's mean episode return {_n(below['behaviour_mean_return'], '.4g')}: "
+            "the learned policy is worse than the data it learned from."
+        )
     if "wall_seconds" in results:
         lines.append(f"wall time {_n(results['wall_seconds'], '.1f')} s (data {_n(results.get('data_seconds', 0), '.1f')} s)")
     return "\n".join(lines)
+
+
+def below_behaviour(final: dict, data: dict) -> dict:
+    """Whether the evaluated policy's mean return lies below the behaviour data's mean episode return (the
+    ``below_behaviour`` flag): ``{"below": bool, "return", "return_ci", "behaviour_mean_return"}``; ``below`` is
+    ``False`` when either figure is unknown (LQR is scored by its regret against the exact optimum instead)."""
+    ret, ref = final.get("return"), data.get("behaviour_mean_return")
+    out = {"below": False, "return": ret, "return_ci": final.get("return_ci"), "behaviour_mean_return": ref}
+    if ret is not None and ref is not None and math.isfinite(ret) and math.isfinite(ref):
+        out["below"] = bool(ret < ref)
+    return out
 
 
 def load_results(root, *, finished_only: bool = False) -> list[dict]:

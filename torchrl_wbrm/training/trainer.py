@@ -42,7 +42,8 @@ from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
-from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults, validate_config
+from torchrl_wbrm.training.reporting import below_behaviour
 from torchrl_wbrm.training.logging import configure_console, log_run_summary
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 from torchrl_wbrm.objectives._utils import NonFiniteError
@@ -90,7 +91,8 @@ def _to_config(cfg) -> WBRMConfig:
         cfg = OmegaConf.structured(cfg)
     elif not isinstance(cfg, DictConfig):
         cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
+    # the settings left null take the env's values (resolve_defaults): the recipe and the Python API run one method
+    return resolve_defaults(OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)))
 
 
 def config_as_dict(cfg) -> dict:
@@ -662,6 +664,9 @@ class WBRMTrainer:
             results["ratio"]["check"] = check
             if check["collapse"]:
                 results["flags"].append("ratio_collapse")
+        results["behaviour_check"] = below_behaviour(results["final"], results["data"])
+        if results["behaviour_check"]["below"]:
+            results["flags"].append("below_behaviour")
         results = json_safe(results)
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / "results.json", results)

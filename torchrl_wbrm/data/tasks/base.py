@@ -61,6 +61,34 @@ class Task(ABC):
     collects_data: ClassVar[bool] = True
     #: γ when ``q.gamma`` is null
     default_gamma: float = 0.99
+    #: the settings a config leaves null (``None``) get these values (dotted keys of
+    #: :class:`~torchrl_wbrm.training.config.WBRMConfig`), so the recipe and the Python API run the same method on
+    #: every env: :func:`~torchrl_wbrm.training.config.resolve_defaults` applies them. The defaults hold on every
+    #: benchmark task (``torchrl_wbrm.data.benchmark``) with no per-task tuning; a subclass changes one only for a
+    #: reason it documents.
+    #:
+    #: * ``q.expert_bc_alpha`` 2.5: the actor clones S^e's actions beside maximising Q, λ = α / mean|Q| as in
+    #:   TD3+BC (``algos.base.ExpertCloning``): without a term that keeps μ on the data's support every
+    #:   Bellman-residual actor pushes off the data on standard tasks (Pendulum-v1, seed 0: −841 without, −141 with);
+    #: * ``q.normalise_observations``: networks see ``(x − mean) / std`` of D's observations (gymnasium observations
+    #:   differ in scale by orders of magnitude across dimensions);
+    #: * ``q.activation`` GELU, ``q.steps`` 3000, ``q.eval_every`` 500;
+    #: * ``eval.episodes`` 100 and ``eval.train_episodes`` 10 (gymnasium episodes run one by one).
+    TRAINING_DEFAULTS: ClassVar[dict[str, Any]] = {
+        "q.expert_bc_alpha": 2.5,
+        "q.bc_alpha": 0.0,
+        "q.normalise_observations": True,
+        "q.activation": "GELU",
+        "q.steps": 3000,
+        "q.eval_every": 500,
+        "eval.episodes": 100,
+        "eval.train_episodes": 10,
+    }
+
+    def training_defaults(self) -> dict[str, Any]:
+        """:attr:`TRAINING_DEFAULTS` with ``q.gamma`` (:attr:`default_gamma`): the values of the settings a config
+        leaves null."""
+        return {**self.TRAINING_DEFAULTS, "q.gamma": self.default_gamma}
 
     def __init__(self, env) -> None:
         """``env``: the env config (:class:`~torchrl_wbrm.data.EnvConfig`, or an OmegaConf node of one)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 from torchrl.data import Bounded
 
+from torchrl_wbrm.data.benchmark import normalised_score
 from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
@@ -47,7 +48,8 @@ class MinariTask(Task):
 
 class MinariEvaluator(Evaluator):
     """The mean undiscounted return over episodes of the datasets' gymnasium env, one by one, beside the datasets'
-    own mean episode returns. The env is built now, so a missing one fails before training."""
+    own mean episode returns; where the datasets record Minari's reference scores (``ref_min_score``: random actions,
+    ``ref_max_score``: the expert), also D4RL's normalised score ``100 (R − ref_min) / (ref_max − ref_min)``. The env is built now, so a missing one fails before training."""
 
     def __init__(self, metadata: dict) -> None:
         super().__init__()
@@ -62,4 +64,11 @@ class MinariEvaluator(Evaluator):
         for key in ("behaviour_mean_return", "expert_mean_return"):  # the datasets' own, beside it
             if meta.get(key) is not None:
                 out[f"data_{key}"] = float(meta[key])
+        low, high = meta.get("ref_min_score"), meta.get("ref_max_score")
+        if low is not None and high is not None and high > low:  # D4RL's score: 0 random actions, 100 the expert
+            out["normalised_score"] = float(normalised_score(res.mean, low, high))
+            out["normalised_score_ci"] = 100.0 * res.half_width / (high - low)
+            if meta.get("behaviour_mean_return") is not None:
+                out["data_behaviour_normalised_score"] = float(normalised_score(meta["behaviour_mean_return"], low,
+                                                                                 high))
         return out

@@ -21,6 +21,17 @@ class MountainCarTask(Task):
 
     kind = "mountain_car"
     data_module = mountain_car_data
+    #: The score is the undiscounted return 100·[goal] − 0.1·Σa². At γ = 0.99 the discounted optimum is the forceful
+    #: policy (reaching in ~80 steps is worth 100·0.99^80 ≈ 45 against ≈ 9 for a gentle ~240-step push), which scores
+    #: ≈ 93.5; only γ close to 1 makes saving energy pay, as the score does.
+    default_gamma = 0.9999
+    #: the paper's MountainCar data: its behaviour data are whole expert episodes with noise plus random episodes,
+    #: and TD3+BC's cloning of D's actions (``q.bc_alpha`` 10), with SiLU Q, 4,000 steps and 100 evaluation
+    #: episodes, returns 95.9 ± 0.2 (5 seeds), above its expert's 93.5, where cloning S^e (the shared default)
+    #: returns 93.0 (seed 0): at γ = 0.9999 Q learns to save energy, and the expert (0.9 sign(v)) does not.
+    TRAINING_DEFAULTS = {**Task.TRAINING_DEFAULTS, "q.bc_alpha": 10.0, "q.expert_bc_alpha": 0.0,
+                         "q.activation": "SiLU", "q.steps": 4000, "q.eval_every": 1000, "eval.episodes": 100,
+                         "eval.train_episodes": 100}
 
     def __init__(self, env) -> None:
         super().__init__(env)
