@@ -233,3 +233,21 @@ def test_the_resume_command_names_how_the_recipe_was_started(monkeypatch, argv0,
 
     monkeypatch.setattr(sys, "argv", [argv0, "seed=1"])
     assert recipe_command() == command
+
+
+# ---------------------------------------------------------------------- LQR: the exact return's refusal
+def test_policy_return_refusal_names_the_action_noise():
+    """``policy_return(0.5 K, 0.5)`` on exp1 (a 2-D system): the clipped figure is refused because of the action
+    noise, not the state dimension; without noise, or unclipped, it is given."""
+    import math
+
+    from torchrl_wbrm.envs import LQREnv
+
+    env = LQREnv("exp1")
+    gain = 0.5 * env.riccati()[1]
+    with pytest.raises(NotImplementedError) as err:
+        env.policy_return(gain, 0.5)
+    message = str(err.value)
+    assert "action noise" in message and "action_noise_std" in message and "clipped=False" in message
+    assert "state dimension" not in message.split(":")[1]
+    assert math.isfinite(env.policy_return(gain, 0.5, clipped=False)) and math.isfinite(env.policy_return(gain, 0.0))

@@ -550,15 +550,16 @@ class LQREnv(BatchedEpisodicEnv):
         cost_matrix = np.zeros_like(covs[0])
         cost_matrix[:d, :d] = S
         cost_matrix[d:, d:] = R
+        noisy = bool(np.any(np.asarray(action_noise_std, dtype=np.float64) != 0))
         total = 0.0
         for t, C in enumerate(covs):
             mean_reward = cfg.reward_offset - float(np.trace(cost_matrix @ C))
             if clipped and cfg.reward_clip is not None:
-                mean_reward += self._clip_excess(C, cost_matrix)
+                mean_reward += self._clip_excess(C, cost_matrix, step=t, noisy=noisy)
             total += cfg.gamma**t * mean_reward
         return total
 
-    def _clip_excess(self, C: np.ndarray, cost_matrix: np.ndarray) -> float:
+    def _clip_excess(self, C: np.ndarray, cost_matrix: np.ndarray, *, step: int = 0, noisy: bool = False) -> float:
         cfg = self.config
         if cfg.reward_clip != 0.0:
             raise NotImplementedError(f"The exact clipped return is implemented for reward_clip=0, got {cfg.reward_clip}.")
@@ -569,9 +570,16 @@ class LQREnv(BatchedEpisodicEnv):
         lam = np.linalg.eigvalsh(0.5 * (form + form.T))
         lam = lam[lam > 1e-12 * max(lam.max(), 1e-300)]
         if len(lam) > 2:
+            d, m = cfg.state_dim, cfg.action_dim
+            if noisy:  # the action noise is a random direction of its own, beside the state's
+                cause = (f"the action noise (action_noise_std > 0) makes a_t random beyond -M x_t, so (x_t, a_t) "
+                         f"spans up to state_dim + action_dim = {d} + {m} dimensions; action_noise_std=0 keeps it "
+                         f"at the state's {d}")
+            else:
+                cause = f"the state dimension is {d}"
             raise NotImplementedError(
-                f"The exact clipped return needs the cost of (x_t, a_t) to have rank <= 2, got rank {len(lam)} (a state "
-                "dimension above 2): use clipped=False for the unclipped figure, or LQRConfig(reward_clip=None) "
+                f"The exact clipped return needs the cost of (x_t, a_t) to have rank <= 2, got rank {len(lam)} at step "
+                f"{step}: {cause}. Use clipped=False for the unclipped figure, or LQRConfig(reward_clip=None) "
                 "(recipe: env.lqr.reward_clip=null) to train and score on the unclipped reward."
             )
         lam = np.pad(lam, (0, 2 - len(lam)))
