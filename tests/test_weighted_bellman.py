@@ -716,25 +716,61 @@ def test_q_past_the_reward_bound_warns_once_naming_the_likely_cause():
     warning that names initial_bias, and ``q_bound_exceeded``; a Q near its targets gives none."""
     spec = Bounded(-1.0, 1.0, (1,))
 
+    def loss_with(bias, **kwargs):
+        torch.manual_seed(0)
+        loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=bias),
+                                   actor_network=make_deterministic_actor(2, spec, num_cells=(8,)), **kwargs)
+        loss.make_value_estimator(gamma=0.9)
+        SoftUpdate(loss, tau=0.1)
+        return loss
+
+    blown = loss_with(500.0, reward_bound=1.0)  # max|r| over the data, given: checked from the first batch
+    with pytest.warns(UserWarning, match=r"\|Q\(x, a\)\| reached .* past 2 · max\|r\| / \(1 − γ\) = 20 \(max\|r\| = 1, "
+                                         r"the reward_bound given.*initial_bias"):
+        blown(_bound_batch())
+    assert blown.q_bound_exceeded
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        blown(_bound_batch())  # once
+        fine = loss_with(0.0, reward_bound=1.0)
+        for _ in range(3):
+            fine(_bound_batch())
+    assert not fine.q_bound_exceeded
+    with pytest.raises(ValueError, match="reward_bound must be a finite number > 0"):
+        loss_with(0.0, reward_bound=0.0)
+
+
+def test_without_a_reward_bound_the_running_max_decides_after_enough_batches():
+    """No reward_bound: max|r| is the running max over every batch seen, and nothing is said before
+    ``q_bound_min_batches`` batches; a rare large reward seen in any batch raises the bound (sparse rewards, as
+    MountainCar's goal reward, do not make it misfire)."""
+    spec = Bounded(-1.0, 1.0, (1,))
+
     def loss_with(bias):
         torch.manual_seed(0)
         loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=bias),
                                    actor_network=make_deterministic_actor(2, spec, num_cells=(8,)))
         loss.make_value_estimator(gamma=0.9)
         SoftUpdate(loss, tau=0.1)
+        loss.q_bound_min_batches = 5
         return loss
 
     blown = loss_with(500.0)
-    with pytest.warns(UserWarning, match=r"\|Q\(x, a\)\| reached .* past 2 · max\|r\| / \(1 − γ\).*initial_bias"):
-        blown(_bound_batch())
-    assert blown.q_bound_exceeded
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        blown(_bound_batch())  # once
-        fine = loss_with(0.0)
-        for _ in range(3):
-            fine(_bound_batch())
-    assert not fine.q_bound_exceeded
+        for _ in range(4):
+            blown(_bound_batch())
+    with pytest.warns(UserWarning, match=r"max\|r\| = 0.9975, over the 5 batches seen"):
+        blown(_bound_batch())
+    sparse = loss_with(500.0)
+    rare = _bound_batch()
+    rare["next", "reward"][0] = 100.0  # one goal reward: every return up to 1,000 is possible
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sparse(rare)
+        for _ in range(10):
+            sparse(_bound_batch())
+    assert not sparse.q_bound_exceeded
 
 
 def test_a_hand_written_lqr_loop_started_at_zero_warns():
@@ -755,6 +791,7 @@ def test_a_hand_written_lqr_loop_started_at_zero_warns():
     updater = SoftUpdate(loss, tau=0.05)
     critic = torch.optim.Adam(loss.value_network_params.values(True, True), lr=1e-3)
     actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=1e-3)
+    loss.reward_bound = float(data[:]["next", "reward"].abs().max())  # max|r| over the data
     with pytest.warns(UserWarning, match=r"Q is diverging.*initial_bias"):
         for _ in range(500):
             out = loss(data.sample(256))

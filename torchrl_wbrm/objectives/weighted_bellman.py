@@ -175,6 +175,10 @@ class WeightedBellmanLoss(LossModule):
         bc_alpha (float, optional): TD3+BC's α. If given, ``loss_actor = mean_i [−λ Q(x_i, μ(x_i)) +
             mean_j (μ(x_i)_j − a_ij)²]`` with ``λ = α / mean|Q(x, μ(x))|`` (detached), as TD3+BC (Fujimoto & Gu
             2021; α = 2.5 there). Defaults to ``None`` (no behaviour cloning).
+        reward_bound (float, optional): max|r| over the data (e.g. ``data["next", "reward"].abs().max()``), for the
+            divergence warning: Q past ``q_bound_margin · reward_bound / (1 − γ)`` (2 × by default) warns once and
+            sets ``q_bound_exceeded``. Defaults to ``None``: the running max|r| over the batches seen, checked from
+            the ``q_bound_min_batches``-th batch (100) on.
         reduction (str, optional): ``"mean"`` (default, also for ``None``), ``"sum"`` or ``"none"``. For
             ``"squared"``, ``"none"`` gives the per-sample ``ŵ_i δ_i²``. For ``"absolute_mean"`` it gives the signed
             per-sample ``ŵ_i δ_i`` *before* the absolute value (``|mean|`` of it is the ``"mean"`` loss), and
@@ -259,9 +263,13 @@ class WeightedBellmanLoss(LossModule):
     #: Call plain networks on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through TensorDicts and
     #: ``to_module``; the same computation (tested). Set ``False`` on an instance to force the TensorDict path.
     fast_path: bool = True
-    #: Q(x, a) past ``q_bound_margin · max|r| / (1 − γ)`` (max|r| over the batches seen) warns once: no discounted
-    #: return of such rewards is that large, so Q is diverging. ``q_bound_exceeded`` then stays ``True``.
+    #: Q(x, a) past ``q_bound_margin · max|r| / (1 − γ)`` warns once: no discounted return of such rewards is that
+    #: large, so Q is diverging. ``q_bound_exceeded`` then stays ``True``. max|r| is ``reward_bound`` when set (e.g.
+    #: max|r| over the whole dataset: the trainer's and a script's best choice), else the running max over the
+    #: batches seen, and then only after ``q_bound_min_batches`` batches (a rare large reward, as MountainCar's goal
+    #: reward, is missing from most batches).
     q_bound_margin: float = 2.0
+    q_bound_min_batches: int = 100
     q_bound_exceeded: bool = False
 
     value_network: TensorDictModule
@@ -286,9 +294,13 @@ class WeightedBellmanLoss(LossModule):
         num_action_samples: int = 64,
         weight_actor_loss: bool = False,
         bc_alpha: float | None = None,
+        reward_bound: float | None = None,
         reduction: str | None = None,
     ) -> None:
         reduction = check_reduction(reduction)
+        if reward_bound is not None and not (math.isfinite(float(reward_bound)) and float(reward_bound) > 0):
+            raise ValueError(f"reward_bound must be a finite number > 0 (max|r| over the data) or None, got "
+                             f"{reward_bound!r}.")
         if residual not in RESIDUALS:
             raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
         discrete = isinstance(value_network, QValueActor) or self.default_keys.action_value in getattr(
@@ -313,6 +325,7 @@ class WeightedBellmanLoss(LossModule):
         self.weight_actor_loss = bool(weight_actor_loss)
         self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
         self.reduction = reduction
+        self.reward_bound = None if reward_bound is None else float(reward_bound)
         self.convert_to_functional(value_network, "value_network", create_target_params=self.delay_value)
         self.has_actor = actor_network is not None
         if self.has_actor:
@@ -748,33 +761,43 @@ class WeightedBellmanLoss(LossModule):
 
     @torch.no_grad()
     def _watch_q_bound(self, q_value: torch.Tensor, tensordict: TensorDictBase) -> None:
-        """Warn once when ``max |Q(x, a)|`` passes ``q_bound_margin · max|r| / (1 − γ)``, with max|r| over the
-        batches seen: no discounted return of these rewards is that large. Checked on every call for CPU tensors and
-        every 100th call elsewhere (each check reads two numbers back from the device)."""
+        """Warn once when ``max |Q(x, a)|`` passes ``q_bound_margin · max|r| / (1 − γ)``: no discounted return of
+        these rewards is that large. max|r| is :attr:`reward_bound`, or the running max over every batch seen (kept
+        on the device, no host sync), and then no warning before ``q_bound_min_batches`` batches. Checked on every
+        call for CPU tensors and every 100th call elsewhere (a check reads two numbers back from the device)."""
         if self.q_bound_exceeded:
             return
         calls = self.__dict__.get("_q_bound_calls", 0) + 1
         self.__dict__["_q_bound_calls"] = calls
+        bound_given = getattr(self, "reward_bound", None)
+        if bound_given is None:
+            reward = fast_get(tensordict, _next(self.tensor_keys.reward))
+            peak = reward.detach().abs().amax().to(torch.float64)
+            seen = self.__dict__.get("_max_abs_reward")
+            self.__dict__["_max_abs_reward"] = peak if seen is None else torch.maximum(seen.to(peak.device), peak)
+            if calls < self.q_bound_min_batches:
+                return
         if q_value.device.type != "cpu" and calls % 100:
             return
         gamma = float(self.value_estimator.gamma)
         if not gamma < 1.0:
             return
-        reward = fast_get(tensordict, _next(self.tensor_keys.reward))
-        q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64),
-                                    reward.abs().amax().to(torch.float64)]).tolist()
-        r_max = max(self.__dict__.get("_max_abs_reward", 0.0), r_max)
-        self.__dict__["_max_abs_reward"] = r_max
+        if bound_given is None:
+            q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64), self.__dict__["_max_abs_reward"]]).tolist()
+            source = f"over the {calls} batches seen"
+        else:
+            q_max, r_max = float(q_value.abs().amax()), float(bound_given)
+            source = "the reward_bound given"
         bound = self.q_bound_margin * r_max / (1.0 - gamma)
         if r_max > 0 and q_max > bound:
             self.q_bound_exceeded = True
             warnings.warn(
                 f"WeightedBellmanLoss: |Q(x, a)| reached {q_max:.4g}, past {self.q_bound_margin:g} · max|r| / (1 − γ) "
-                f"= {bound:.4g} (max|r| = {r_max:.4g} over the batches seen, γ = {gamma:g}), larger than any discounted "
-                "return of these rewards: Q is diverging. Likely cause: Q started far from its targets (set "
-                "make_q_network's initial_bias to mean(r) / (1 − γ), e.g. initial_q_value(data, gamma)); else a "
-                "learning rate too high for the bootstrap, or a target updated too fast (delay_value=True with a "
-                "smaller SoftUpdate tau). This warning is given once per loss.",
+                f"= {bound:.4g} (max|r| = {r_max:.4g}, {source}; γ = {gamma:g}), larger than any discounted return "
+                "of these rewards: Q is diverging. Likely cause: Q started far from its targets (set make_q_network's "
+                "initial_bias to mean(r) / (1 − γ), e.g. initial_q_value(data, gamma)); else a learning rate too high "
+                "for the bootstrap, or a target updated too fast (delay_value=True with a smaller SoftUpdate tau). "
+                "This warning is given once per loss.",
                 UserWarning,
                 stacklevel=3,
             )
