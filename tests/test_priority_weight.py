@@ -1,5 +1,7 @@
 """WeightedBellmanLoss follows TorchRL's per-sample weight convention (``"priority_weight"``,
-``use_prioritized_weights``), multiplying it with ŵ; ŵ stored as ``"priority_weight"`` weights TorchRL's own losses."""
+``use_prioritized_weights``), multiplying it with ŵ; ŵ stored as ``"priority_weight"`` weights the TorchRL losses that
+read it natively (``DQNLoss`` here; which losses those are, and ``WeightedLoss`` for the others:
+tests/test_weighted_loss.py)."""
 from __future__ import annotations
 
 import pytest
