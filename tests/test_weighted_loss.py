@@ -352,3 +352,15 @@ def test_dtype_moves_and_modes_reach_the_wrapped_loss():
     copy.make_value_estimator(gamma=0.9)
     copy.load_state_dict(loss.float().state_dict())
     assert all(torch.equal(a, b) for a, b in zip(copy.parameters(), inner.parameters()))
+
+
+def test_rows_masked_invalid_get_weight_zero():
+    """A "shifted_valid" mask (torchrl's validity mask) weighs as 0/1 weights do."""
+    keep = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0], dtype=torch.bool)
+    w = torch.rand(B, generator=torch.Generator().manual_seed(8)) + 0.1
+    td = _data("IQLLoss")
+    loss = WeightedLoss(_build("IQLLoss", "none"))
+    masked = _terms(_call(loss, td.clone().set("density_ratio", w).set("shifted_valid", keep.unsqueeze(-1))))
+    selected = _terms(_call(loss, td.clone().set("density_ratio", w * keep)))
+    for key in selected:
+        torch.testing.assert_close(masked[key], selected[key], msg=key)

@@ -96,7 +96,9 @@ class WeightedLoss(LossModule):
       ŵ-weighted TD3+BC use :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` with ``bc_alpha``.
 
     A ``loss_*`` entry that comes out without the batch's leading shape is refused by name at the first
-    ``forward``.
+    ``forward``. Rows that the wrapped loss's validity mask marks invalid (torchrl's ``loss_mask_key``:
+    ``("collector", "mask")`` and ``"shifted_valid"`` by default) get weight 0, as torchrl's own reduction drops
+    them.
 
     Args:
         loss (LossModule): the TorchRL loss, built with ``reduction="none"`` (for ``IQLLoss``, ``CQLLoss`` and
@@ -298,6 +300,12 @@ class WeightedLoss(LossModule):
                 check_sign(priority, priority_key, strictly_positive=False)
                 weight = weight * priority.to(weight.dtype)
                 source = f"{key!r} times {priority_key!r}"
+        mask_keys = getattr(self.loss_module, "_loss_mask_keys", None)
+        for mask_key in mask_keys() if callable(mask_keys) else ():  # torchrl's validity masks: weight 0 where False
+            mask = tensordict.get(mask_key, None)
+            if mask is not None:
+                weight = weight * per_sample(mask, batch, mask_key).to(weight.dtype)
+                source += f" masked by {mask_key!r}"
         if weight.device.type == "cpu" and not bool(weight.sum() > 0):
             raise ValueError(
                 f"Every weight of the batch is 0 (entry {source}): the weighted mean Σ wᵢ lᵢ / Σ wᵢ is undefined. "
