@@ -648,9 +648,12 @@ class WeightedBellmanLoss(LossModule):
         """Check a batch against the documented shapes before any network sees it; return it with bool flags.
 
         A ValueError names the key and both shapes for a reward or flag that is not one value per sample, or an
-        observation whose next-state counterpart has another shape; an empty batch and NaN/inf in the reward,
-        observations or action (CPU tensors) are ValueErrors too. ``done``/``terminated`` of any integer dtype
-        holding 0/1 are read as bools (a shallow copy; the input is not modified); a float flag is a TypeError.
+        observation whose next-state counterpart has another shape, and every input key with its width when the
+        widths do not add up to the value network's input features; an empty batch and NaN/inf in the reward,
+        observations or action (CPU tensors) are ValueErrors too; an input whose dtype is not the network's is a
+        TypeError naming both. ``done``/``terminated`` of any integer dtype holding 0/1 are read as bools, and flags
+        of shape ``[*B]`` beside a reward ``[*B, 1]`` (or the reverse) take the reward's shape (a shallow copy; the
+        input is not modified); a float flag is a TypeError.
         ``weight_to_check`` (ŵ, ``[*B]``) is checked finite and non-negative first (:func:`check_sign`'s error).
 
         The finite checks (and ŵ's sign) are one sum over all the entries and one minimum, read in one host sync: a
