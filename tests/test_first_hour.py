@@ -29,9 +29,10 @@ TINY = [
 
 
 def run(args: list[str], *, cwd=ROOT, timeout: int = 300, env: dict | None = None) -> subprocess.CompletedProcess:
-    """``python <args>`` as a user would run it (captured, with the console's own settings)."""
-    full_env = {**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline",
-                "COLUMNS": "120", **(env or {})}
+    """``python <args>`` as a user would run it (captured, with the console's own settings); ``env`` replaces the
+    environment when given."""
+    full_env = {**(os.environ if env is None else env), "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1",
+                "WANDB_MODE": "offline", "COLUMNS": "120"}
     return subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout,
                           env=full_env)
 
@@ -251,3 +252,70 @@ def test_policy_return_refusal_names_the_action_noise():
     assert "action noise" in message and "action_noise_std" in message and "clipped=False" in message
     assert "state dimension" not in message.split(":")[1]
     assert math.isfinite(env.policy_return(gain, 0.5, clipped=False)) and math.isfinite(env.policy_return(gain, 0.0))
+
+
+# ---------------------------------------------------------------------- the console
+def test_no_library_info_lines_from_the_python_api():
+    """A replay buffer filled through the Python API (as the examples do) prints no torchrl ``[INFO]`` line, even
+    with torchrl imported first; ``TORCHRL_WBRM_VERBOSE=1`` brings them back."""
+    fill = ("from tensordict import TensorDict\nimport torch\nfrom torchrl.data import LazyTensorStorage, ReplayBuffer\n"
+            "ReplayBuffer(storage=LazyTensorStorage(10)).extend(TensorDict({'a': torch.zeros(4)}, [4]))\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("RL_LOGGING_LEVEL", "TORCHRL_WBRM_VERBOSE")}
+    quiet = run(["-c", "import torchrl\nimport torchrl_wbrm.data\n" + fill], env=env)
+    assert quiet.returncode == 0, quiet.stderr[-2000:]
+    assert "[INFO]" not in quiet.stdout + quiet.stderr and quiet.stderr == "", quiet.stdout + quiet.stderr
+    verbose = run(["-c", "import torchrl_wbrm.data\n" + fill], env={**env, "TORCHRL_WBRM_VERBOSE": "1"})
+    assert "[torchrl][INFO]" in verbose.stdout + verbose.stderr
+
+
+def test_bc_builds_without_torchrls_annotation_warning(tmp_path):
+    """``algo=bc``: torchrl's ``BCLoss`` warns about an annotation it lacks (900 characters); not on our console."""
+    import warnings
+
+    from tests.references import compose_recipe
+    from torchrl_wbrm.training import WBRMTrainer
+
+    cfg = compose_recipe("algo=bc", *TINY, "logger=none", "plots=false")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        WBRMTrainer(cfg, tmp_path, progress=False).run()
+    assert not [w for w in caught if "wasn't part of the annotations" in str(w.message)]
+
+
+@pytest.mark.parametrize("figures", [
+    {"loss_density_ratio": -2.01234, "density_ratio_behaviour_mean": 1.0, "density_ratio_expert_mean": 3.2,
+     "density_ratio_min": 0.01, "density_ratio_max": 12.3, "density_ratio_ess": 3012.3, "normalisation_penalty": 0.1},
+    {"loss_value": 0.0231234, "td_error_mean": -0.00123, "td_error_abs_mean": 0.1234, "q_mean": 84.2312,
+     "target_value_mean": 84.1, "weight_mean": 1.0, "weight_ess": 1640.2, "expert_bc_loss": 0.5, "loss_actor": -99.12},
+    {"loss_actor": -12.3456, "loss_actor_bc": 0.123456, "loss_qvalue": 123.456, "loss_cql": 45.678,
+     "loss_alpha": -0.0012345, "alpha": 0.5, "entropy": -1.2345},
+])
+def test_the_progress_bar_keeps_its_figures_whole_at_120_columns(figures):
+    from tqdm import tqdm
+
+    from torchrl_wbrm.training.logging import progress_postfix
+
+    postfix = progress_postfix(figures)
+    assert postfix.split("=")[0] in ("loss", "loss_q") and len(postfix) <= 44
+    line = tqdm.format_meter(4500, 10000, 37.2, ncols=120, prefix="q", postfix=postfix)
+    assert len(line) <= 120 and line.rstrip().endswith(postfix + "]"), line
+    assert "|" in line.split(postfix)[0]  # the bar itself is still drawn
+
+
+def test_a_config_error_is_one_line(tmp_path):
+    """``device=cuda`` without CUDA (or another refused setting): one line on stderr, no traceback, non-zero exit,
+    and nothing written."""
+    import torch as _torch
+
+    bad = "device=cuda" if not _torch.cuda.is_available() else "ratio.bounds=[0.5]"
+    proc = recipe(bad, f"hydra.run.dir={tmp_path / 'run'}")
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr and proc.stdout == ""
+    assert len(proc.stderr.strip().splitlines()) == 1 and ("device" in proc.stderr or "ratio.bounds" in proc.stderr)
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_recipe_writes_no_empty_log(tmp_path):
+    proc = recipe(*TINY, "logger=none", "plots=false", f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not [p.name for p in tmp_path.glob("*.log") if p.stat().st_size == 0]
+    assert "[INFO]" not in proc.stdout + proc.stderr

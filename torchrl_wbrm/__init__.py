@@ -6,4 +6,8 @@ Layers, lowest first (a layer imports only from layers below it):
 (one file per algorithm, registered) → ``training``.
 """
 
+from torchrl_wbrm._console import quiet_libraries
+
 __version__ = "0.1.0"
+
+quiet_libraries()  # no library [INFO] lines on the console by default (TORCHRL_WBRM_VERBOSE=1 keeps them)

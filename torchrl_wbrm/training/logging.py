@@ -19,7 +19,6 @@ Read an offline run back with ``wandb leet <run dir>/wandb`` (a terminal dashboa
 """
 from __future__ import annotations
 
-import logging
 import os
 import re
 from pathlib import Path
@@ -27,19 +26,50 @@ from typing import Iterable
 
 from torchrl.record.loggers import get_logger
 
-__all__ = ["make_logger", "configure_console", "run_name", "log_run_summary", "log_study_summary",
+from torchrl_wbrm._console import quiet_libraries
+
+__all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_run_summary", "log_study_summary",
            "markdown_tables"]
 
-#: Loggers whose INFO lines (storage initialisation and the like) are silenced unless ``verbose=true``.
-CHATTY_LOGGERS = ("torchrl", "tensordict", "minari", "h5py")
-
-
 def configure_console(verbose: bool) -> None:
-    """Silence the libraries' INFO chatter on the console (``verbose=False``), or bring it back (``True``)."""
-    level = logging.INFO if verbose else logging.WARNING
-    for name in CHATTY_LOGGERS:
-        logging.getLogger(name).setLevel(level)
+    """Silence the libraries' INFO chatter on the console (``verbose=False``), or bring it back (``True``): torchrl's
+    storage lines and the like (:func:`torchrl_wbrm._console.quiet_libraries`, also applied on import) and wandb's
+    own output."""
+    quiet_libraries(bool(verbose))
     os.environ["WANDB_SILENT"] = "false" if verbose else "true"
+
+
+#: The training figures a progress bar shows, in order of preference, with their short labels.
+PROGRESS_FIGURES = {
+    "loss_density_ratio": "loss", "density_ratio_ess": "ess",  # stage 1
+    "loss_value": "loss", "loss_bc": "loss", "loss_qvalue": "loss_q", "loss_actor": "actor", "q_mean": "Q",
+    "weight_ess": "ess", "loss_cql": "cql", "entropy": "H",
+}
+#: The most characters a progress bar's figures take: a 120-column line keeps them whole beside the bar and counts.
+PROGRESS_WIDTH = 44
+
+
+def progress_postfix(figures: dict[str, float], width: int = PROGRESS_WIDTH) -> str:
+    """The few figures a tqdm bar shows (``loss=0.0231 actor=-99.1 Q=84.2``): the known ones first, by short
+    label, then others, up to ``width`` characters, so the line is never cut.
+
+        >>> progress_postfix({"loss_value": 0.023123, "q_mean": 84.2312, "loss_actor": -99.12, "weight_ess": 1640.2})
+        'loss=0.0231 actor=-99.1 Q=84.2 ess=1.64e+03'
+    """
+    known = [(PROGRESS_FIGURES[k], v) for k, v in sorted(figures.items(), key=lambda kv: _order(kv[0]))
+             if k in PROGRESS_FIGURES]
+    others = [(k, v) for k, v in figures.items() if k not in PROGRESS_FIGURES]
+    parts: list[str] = []
+    for label, value in [*known, *others]:
+        part = f"{label}={float(value):.3g}"
+        if len(" ".join([*parts, part])) > width:
+            break
+        parts.append(part)
+    return " ".join(parts)
+
+
+def _order(key: str) -> int:
+    return list(PROGRESS_FIGURES).index(key) if key in PROGRESS_FIGURES else len(PROGRESS_FIGURES)
 
 
 def run_name(config: dict) -> str:

@@ -44,7 +44,7 @@ from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, comput
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults, validate_config
 from torchrl_wbrm.training.reporting import below_behaviour
-from torchrl_wbrm.training.logging import configure_console, log_run_summary
+from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.guards import (
@@ -341,7 +341,7 @@ class WBRMTrainer:
                     running = {k: float(v) for k, v in figures.items()}
                     self._log({f"{name}/{k}": v for k, v in running.items()}, step)
                     self.history.append({"stage": f"{name}_train", "step": step, **running})
-                    bar.set_postfix({k: f"{v:.4g}" for k, v in list(running.items())[:4]})
+                    bar.set_postfix_str(progress_postfix(running), refresh=False)  # fits a 120-column line
                 if step % eval_every == 0 or step == total_steps:
                     if self._evaluate_at(name, step, eval_fn):
                         finished_early = True
@@ -675,7 +675,7 @@ class WBRMTrainer:
             from torchrl_wbrm.training.plots import plot_run
 
             plot_run(self.history, self.run_dir, title=f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}",
-                     algo=self.cfg.algo)
+                     algo=self.cfg.algo, data=results.get("data"))
         if self.logger is not None:  # wandb: final figures with CIs in the summary, plots, a results table
             log_run_summary(self.logger, results, self.run_dir)
         return results
