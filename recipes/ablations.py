@@ -122,11 +122,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="tiny budgets, 2 settings, 1 seed")
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", default="results/ablations")
+    parser.add_argument("--out", default=None,
+                        help="where the runs and tables go (default results/ablations; --quick: results/ablations_quick)")
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
-    out = Path(args.out)
+    out = Path(args.out or ("results/ablations_quick" if args.quick else "results/ablations"))  # a smoke run never mixes with the full one
     cells = build_cells(args.quick)
     if not args.report_only:
         from torchrl_wbrm.training.runs import run_cells

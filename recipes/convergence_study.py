@@ -161,10 +161,11 @@ def main() -> None:
     parser.add_argument("--ratio-sizes", nargs="+", type=int, default=None, help=f"m values (default {RATIO_SIZES})")
     parser.add_argument("--q-sizes", nargs="+", type=int, default=None, help=f"n values (default {Q_SIZES})")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", default="results/convergence_study")
+    parser.add_argument("--out", default=None,
+                        help="where the runs and tables go (default results/convergence_study; --quick: results/convergence_study_quick)")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
-    out = Path(args.out)
+    out = Path(args.out or ("results/convergence_study_quick" if args.quick else "results/convergence_study"))  # a smoke run never mixes with the full one
     from torchrl_wbrm.training.runs import CONVERGENCE_BUDGET, CONVERGENCE_QUICK_BUDGET, cell_dir, run_cells
 
     cells, seeds = build_cells(args.quick, args.ratio_sizes, args.q_sizes), range(1 if args.quick else args.seeds)

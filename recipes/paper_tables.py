@@ -610,11 +610,12 @@ def main() -> None:
                              "baselines.cql.with_lagrange=true (use an --out of their own: the tables read every "
                              "run there)")
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default="results/paper_tables")
+    parser.add_argument("--out", default=None,
+                        help="where the runs and tables go (default results/paper_tables; --quick: results/paper_tables_quick)")
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild tables.md and the figures from finished runs")
     args = parser.parse_args()
-    out = Path(args.out)
+    out = Path(args.out or ("results/paper_tables_quick" if args.quick else "results/paper_tables"))  # a smoke run never mixes with the full one
     algos = args.algos or available_algos()
     unknown = sorted(set(algos) - set(available_algos()))
     if unknown:

@@ -396,13 +396,14 @@ def main() -> None:
                         help="systems of every other level (fewer: a cheaper study)")
     parser.add_argument("--default-seeds", type=int, default=5, help="seeds of the defaults' cells")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", default="results/q_accuracy_study")
+    parser.add_argument("--out", default=None,
+                        help="where the runs and tables go (default results/q_accuracy_study; --quick: results/q_accuracy_study_quick)")
     args = parser.parse_args()
     unknown = [b for b in args.blocks if b not in BLOCKS and b not in OTHER_BLOCKS]
     if unknown:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, *OTHER_BLOCKS]}")
     os.environ.setdefault("MPLBACKEND", "Agg")
-    out = Path(args.out)
+    out = Path(args.out or ("results/q_accuracy_study_quick" if args.quick else "results/q_accuracy_study"))  # a smoke run never mixes with the full one
     from torchrl_wbrm.training.runs import Q_ACCURACY_BUDGET, QUICK_BUDGET, run_cells
 
     budget = QUICK_BUDGET if args.quick else Q_ACCURACY_BUDGET

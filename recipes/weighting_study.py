@@ -242,10 +242,11 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                         help=f"the regimes block's methods to run (default all: {REGIME_METHODS})")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", default="results/weighting_study")
+    parser.add_argument("--out", default=None,
+                        help="where the runs and tables go (default results/weighting_study; --quick: results/weighting_study_quick)")
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
-    out = Path(args.out)
+    out = Path(args.out or ("results/weighting_study_quick" if args.quick else "results/weighting_study"))  # a smoke run never mixes with the full one
     try:
         cells = build_cells(args.quick, args.blocks, args.regimes, args.methods)
     except ValueError as error:

@@ -319,3 +319,33 @@ def test_the_recipe_writes_no_empty_log(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert not [p.name for p in tmp_path.glob("*.log") if p.stat().st_size == 0]
     assert "[INFO]" not in proc.stdout + proc.stderr
+
+
+# ---------------------------------------------------------------------- the studies' smoke runs
+class _Ran(Exception):
+    pass
+
+
+@pytest.mark.parametrize("study", ["paper_tables", "weighting_study", "ablations", "convergence_study",
+                                   "q_accuracy_study"])
+def test_a_quick_study_never_writes_into_the_full_ones_folder(study, monkeypatch):
+    """``--quick`` and the full study default to different folders: a smoke run's finished runs (another budget)
+    would otherwise be found, and refused, by the full study."""
+    import importlib
+
+    from torchrl_wbrm.training import runs
+
+    monkeypatch.syspath_prepend(str(ROOT / "recipes"))
+    module = importlib.import_module(study)
+    outs = []
+
+    def record(cells, seeds, budget, out, **kwargs):
+        outs.append(str(out))
+        raise _Ran
+
+    monkeypatch.setattr(runs, "run_cells", record)
+    for argv, expected in (([], f"results/{study}"), (["--quick"], f"results/{study}_quick")):
+        monkeypatch.setattr(sys, "argv", [study, *argv])
+        with pytest.raises(_Ran):
+            module.main()
+        assert outs[-1] == expected
