@@ -66,9 +66,9 @@ def summarise(results: dict) -> str:
     check = results.get("ratio", {}).get("check") or {}
     if check.get("collapse"):
         lines.append(
-            "FLAG ratio_collapse: stage 1 failed: " + "; ".join(check.get("reasons", [])) + ". The stored weights "
-            "carry no information (ŵ is at its lower bound on " + _n(100 * check.get("at_lower_bound", 0), ".0f")
-            + "% of D); lower ratio.lr or check the data (ratio.source=none runs the unweighted method on purpose)."
+            "FLAG ratio_collapse: stage 1 failed: " + "; ".join(check.get("reasons", [])) + " (ŵ at its lower bound "
+            "on " + _n(100 * check.get("at_lower_bound", 0), ".0f") + "% of D). The weights carry no information; "
+            "lower ratio.lr or check the data (ratio.source=none runs the unweighted method on purpose)."
         )
     below = results.get("behaviour_check") or {}
     if below.get("below"):
