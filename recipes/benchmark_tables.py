@@ -1,0 +1,121 @@
+"""The benchmark table: algorithms × benchmark tasks, D4RL-normalised scores with 95% CIs over seeds, and the cost.
+
+    python -m torchrl_wbrm.data.benchmark --data-path datasets/benchmark      # the datasets, once (about 1 min)
+    python recipes/benchmark_tables.py --data-path datasets/benchmark         # wbrm on every task, 5 seeds
+    python recipes/benchmark_tables.py --algos wbrm brm td3bc iql bc --seeds 5 --budgets 1 3 10
+    python recipes/benchmark_tables.py --quick                                # a smoke version (CI): tiny data
+    python recipes/benchmark_tables.py --report-only                          # rebuild tables.md from finished runs
+
+Every run is the main recipe with the dataset keys only (``env=minari env.minari.expert=... env.minari.behaviour=...``)
+plus ``algo=<name>``; ``--budgets`` multiplies the env's default ``q.steps`` (and ``q.eval_every``), to check that a
+longer run does not lose return. Runs go through the studies' shared runner
+(:func:`torchrl_wbrm.training.runs.run_cells`) into ``<out>/<task>/<algo>/x<budget>/seed<seed>``; a finished run is not
+run again. ``tables.md`` then gives, per task and algorithm, the normalised score (0 = uniform random actions,
+100 = the expert; the datasets' Minari reference scores) as mean ± 95% CI over seeds, the raw return, the behaviour
+data's own score, how many runs were flagged (``q_blow_up``, ``below_behaviour``, ``ratio_collapse``) and the wall
+seconds per run (one torch thread, ``--jobs`` runs at a time).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # a clone's recipes run without installing (the package is importable either way)
+
+LABELS = ("task", "algo", "budget")
+
+
+def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_path: Path, namespace: str,
+                base_steps: int, base_eval_every: int) -> list[dict]:
+    from torchrl_wbrm.data.benchmark import benchmark_ids
+
+    cells = []
+    for task in tasks:
+        ids = benchmark_ids(task, namespace)
+        for algo in algos:
+            for budget in budgets:
+                overrides = ["env=minari", f"env.minari.data_path={data_path}", f"env.minari.expert={ids['expert']}",
+                             f"env.minari.behaviour={ids['behaviour']}", f"algo={algo}", "logger=none"]
+                if budget != 1:
+                    overrides += [f"q.steps={budget * base_steps}", f"q.eval_every={budget * base_eval_every}"]
+                cells.append({"task": task, "algo": algo, "budget": f"x{budget}", "overrides": overrides})
+    return cells
+
+
+def benchmark_report(out: Path) -> str:
+    """``tables.md``'s text from every run under ``out``."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+    from torchrl_wbrm.training.reporting import ci_cell, load_results, split_by_status
+
+    records, excluded = split_by_status(load_results(out))
+    rows: dict[tuple, list[dict]] = {}
+    for rec in records:
+        study = rec.get("study", {})
+        rows.setdefault((study.get("task"), study.get("algo"), study.get("budget")), []).append(rec)
+    lines = [
+        "| task | algo | budget | seeds | normalised score | return | behaviour data (normalised) | flagged | "
+        "wall s / run |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
+        recs = rows[key]
+        flags = sorted({f for r in recs for f in r.get("flags", [])})
+        flagged = sum(1 for r in recs if r.get("flags"))
+        wall = [r["wall_seconds"] for r in recs if isinstance(r.get("wall_seconds"), (int, float))]
+        wall_cell = f"{mean_ci(wall).mean:.0f}" if wall else "–"
+        lines.append(
+            f"| {key[0]} | {key[1]} | {key[2]} | {len(recs)} | {ci_cell(recs, 'final.normalised_score', 1)} | "
+            f"{ci_cell(recs, 'final.return', 1)} | {ci_cell(recs[:1], 'final.data_behaviour_normalised_score', 1)} | "
+            f"{flagged}{' (' + ', '.join(flags) + ')' if flags else ''} | {wall_cell} |")
+    if excluded:
+        lines.append(f"\n{len(excluded)} run(s) excluded (not finished: diverged or interrupted).")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    from torchrl_wbrm.data.benchmark import BENCHMARK_TASKS, NAMESPACE
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data-path", default="datasets/benchmark", help="the benchmark's Minari data path")
+    parser.add_argument("--namespace", default=NAMESPACE)
+    parser.add_argument("--tasks", nargs="+", default=list(BENCHMARK_TASKS), choices=list(BENCHMARK_TASKS))
+    parser.add_argument("--algos", nargs="+", default=["wbrm"])
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--budgets", nargs="+", type=int, default=[1], help="multiples of the default q.steps")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="results/benchmark")
+    parser.add_argument("--quick", action="store_true", help="tiny datasets and budgets (a smoke run)")
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+
+    from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
+    from torchrl_wbrm.data.minari_data import minari_data_root
+    from torchrl_wbrm.data.tasks import MinariTask
+    from torchrl_wbrm.training.runs import run_cells
+
+    out, data_path = Path(args.out).resolve(), Path(args.data_path).resolve()
+    if not args.report_only:
+        missing = [t for t in args.tasks
+                   if not (minari_data_root(data_path) / benchmark_ids(t, args.namespace)["behaviour"]).exists()]
+        if missing:
+            sizes = dict(expert_episodes=2, behaviour_episodes=10, reference_episodes=3) if args.quick else {}
+            rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)
+            print(f"wrote the datasets of {', '.join(r['task'] for r in rows)} under {data_path}")
+        steps, eval_every = (MinariTask.TRAINING_DEFAULTS[k] for k in ("q.steps", "q.eval_every"))
+        cells = build_cells(args.tasks, args.algos, args.budgets, data_path, args.namespace, steps, eval_every)
+        budget = (["ratio.steps=20", "q.steps=20", "q.eval_every=10", "eval.episodes=2", "eval.train_episodes=1",
+                   "plots=false"] if args.quick else [])
+        if args.quick:  # the budget goes first, so a cell's own q.steps (its multiple) would win: drop it
+            for cell in cells:
+                cell["overrides"] = [o for o in cell["overrides"] if not o.startswith(("q.steps=", "q.eval_every="))]
+        run_cells(cells, range(args.seeds), budget, out, jobs=args.jobs, labels=LABELS)
+    table = benchmark_report(out)
+    (out / "tables.md").parent.mkdir(parents=True, exist_ok=True)
+    (out / "tables.md").write_text(table)
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
