@@ -349,3 +349,12 @@ def test_a_quick_study_never_writes_into_the_full_ones_folder(study, monkeypatch
         with pytest.raises(_Ran):
             module.main()
         assert outs[-1] == expected
+
+
+def test_the_examples_command_is_quiet(tmp_path):
+    """``python -m torchrl_wbrm.data.minari_examples`` (a README command): its two lines, nothing on stderr (no
+    runpy warning about the module being imported before it runs, no library INFO line)."""
+    proc = run(["-m", "torchrl_wbrm.data.minari_examples", "--env", "cartpole", "--data-path", str(tmp_path)])
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr[-2000:]
+    assert proc.stdout.splitlines() == [f"expert:    {tmp_path}/examples/cartpole/expert-v0",
+                                        f"behaviour: {tmp_path}/examples/cartpole/behaviour-v0"]

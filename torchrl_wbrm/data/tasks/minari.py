@@ -4,7 +4,6 @@ from __future__ import annotations
 import torch
 from torchrl.data import Bounded
 
-from torchrl_wbrm.data.benchmark import normalised_score
 from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
@@ -66,6 +65,10 @@ class MinariEvaluator(Evaluator):
                 out[f"data_{key}"] = float(meta[key])
         low, high = meta.get("ref_min_score"), meta.get("ref_max_score")
         if low is not None and high is not None and high > low:  # D4RL's score: 0 random actions, 100 the expert
+            # imported here: data.benchmark imports data.minari_examples, which then could not run as
+            # `python -m torchrl_wbrm.data.minari_examples` without runpy's "found in sys.modules" warning
+            from torchrl_wbrm.data.benchmark import normalised_score
+
             out["normalised_score"] = float(normalised_score(res.mean, low, high))
             out["normalised_score_ci"] = 100.0 * res.half_width / (high - low)
             if meta.get("behaviour_mean_return") is not None:
