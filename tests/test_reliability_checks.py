@@ -189,3 +189,30 @@ def test_too_few_behaviour_episodes_name_the_dataset_and_the_minimum(episodes):
             metadata={"behaviour_dataset": "mc/behaviour-v0"},
         )
     OfflineDatasets.from_behaviour_and_expert(_episodes(4), _episodes(3).select("observation", "action", "episode"))
+
+
+def test_second_ctrl_c_names_the_checkpoint_it_leaves(tmp_path, monkeypatch, capsys):
+    """A second Ctrl-C (KeyboardInterrupt out of the run) after a checkpoint was written: the recipe says that
+    checkpoint.pt holds the last checkpoint and how to resume, not that nothing was written."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    def interrupted(self, **kwargs):
+        self.save_checkpoint()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(WBRMTrainer, "run", interrupted)
+    run_dir = tmp_path / "run"
+    monkeypatch.setattr(sys, "argv", [
+        "wbrm_offline.py", "ratio.steps=10", "q.steps=20", "eval.episodes=50", "eval.train_episodes=20",
+        "eval.q_samples=300", "logger=none", "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20",
+        "env.lqr_data.parallel_envs=20", f"hydra.run.dir={run_dir}", "hydra/job_logging=none",
+        "hydra/hydra_logging=none",
+    ])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(Path(__file__).resolve().parents[1] / "recipes" / "wbrm_offline.py"), run_name="__main__")
+    err = capsys.readouterr().err
+    assert exit_.value.code == 130 and (run_dir / "checkpoint.pt").is_file()
+    assert f"{run_dir / 'checkpoint.pt'} holds the last checkpoint" in err and f"resume={run_dir}" in err
+    assert "nothing was written" not in err
