@@ -13,9 +13,11 @@ import torch
 #: (files with the most tests first) left the few-test, minute-long subprocess files for last, one worker running
 #: them while the other idled. A file not listed keeps its place after these; a stale list costs balance only.
 SLOWEST_FILES = (
+    "test_benchmark_learning.py",  # about 4 min under load (each benchmark task at two budgets); idle: to measure
     "test_baselines.py",  # 193 s: every algo's learning tests and the recipe for every algo
     "test_recipes.py",  # 105 s
-    "test_studies_quick.py",  # 94 s
+    "test_studies_quick.py",  # 195 s under load (paper_tables --quick runs every registered algorithm: 129 s)
+    "test_first_hour.py",  # 90 s under load (the README commands as a user types them)
     "test_speed_compile.py",  # 91 s
     "test_examples.py",  # 56 s
     "test_launchers.py",  # 44 s
