@@ -216,3 +216,16 @@ def test_second_ctrl_c_names_the_checkpoint_it_leaves(tmp_path, monkeypatch, cap
     assert exit_.value.code == 130 and (run_dir / "checkpoint.pt").is_file()
     assert f"{run_dir / 'checkpoint.pt'} holds the last checkpoint" in err and f"resume={run_dir}" in err
     assert "nothing was written" not in err
+
+
+@pytest.mark.parametrize("random_episodes, noisy_episodes", [(1, 0), (1, 1)])
+def test_a_minari_behaviour_dataset_of_one_or_two_episodes_is_named(tmp_path, random_episodes, noisy_episodes):
+    from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets
+    from torchrl_wbrm.data.minari_examples import make_mountain_car_datasets
+
+    ids = make_mountain_car_datasets(tmp_path, expert_episodes=2, random_episodes=random_episodes,
+                                     noisy_expert_episodes=noisy_episodes, seed=0)
+    n = random_episodes + noisy_episodes
+    with pytest.raises(ValueError, match=rf"The behaviour dataset '{ids['behaviour']}' holds {n} episode\(s\); at "
+                                         r"least 4 are needed"):
+        make_minari_datasets(MinariDataConfig(expert=ids["expert"], behaviour=ids["behaviour"], data_path=str(tmp_path)))
