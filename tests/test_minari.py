@@ -151,7 +151,7 @@ def test_mismatched_spaces_name_both(tmp_path):
 def test_eval_env_recorded_or_given(tmp_path):
     from gymnasium import spaces
 
-    episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 2, seed=0)
+    episodes = collect_gym_episodes(PENDULUM, lambda obs, rng: pendulum_expert_action(obs), 4, seed=0)  # min_behaviour_episodes
     write_minari_dataset("anon/expert-v0", episodes, data_path=tmp_path,
                          observation_space=spaces.Box(np.array([-1, -1, -8], np.float32),
                                                       np.array([1, 1, 8], np.float32)),
