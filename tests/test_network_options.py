@@ -226,9 +226,9 @@ def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
     api = resolve_defaults(WBRMConfig(env=_to_config(mc).env, threads=1))  # threads: the recipe's one difference
     assert api == resolved
     lqr = _to_config(_compose("env=lqr_exp1"))
-    assert lqr.q.expert_bc_alpha == LQRTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 2.5
+    assert lqr.q.expert_bc_alpha == LQRTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0
     assert not lqr.q.normalise_observations and lqr.q.gamma == 0.9 and lqr.eval.episodes == 1000
-    assert MinariTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 2.5  # the shared default, not MountainCar's
+    assert MinariTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0  # the shared default, not MountainCar's
     assert _to_config(_compose("env=mountain_car", "q.bc_alpha=1.0")).q.bc_alpha == 1.0  # the command line wins
     assert _to_config(_compose("env=mountain_car", "q.steps=7")).q.steps == 7
     # one support term: choosing one leaves the other off; both on is refused by name
@@ -238,6 +238,6 @@ def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
     assert (chosen.bc_alpha, chosen.expert_bc_alpha) == (0.0, 1.0)
     from torchrl_wbrm.training.config import validate_config
 
-    with pytest.raises(ValueError, match="q.bc_alpha=2.5 .* q.expert_bc_alpha=2.5"):
-        validate_config(_to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5", "q.expert_bc_alpha=2.5")))
+    with pytest.raises(ValueError, match="q.bc_alpha=2.5 .* q.expert_bc_alpha=1.5"):
+        validate_config(_to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5", "q.expert_bc_alpha=1.5")))
     assert _to_config(_compose("env=mountain_car", "algo=td3bc")).q.gamma == 0.9999  # baselines get them too

@@ -124,7 +124,7 @@ class QConfig:
             MountainCar's 10; 0: off; the paper has none).
         expert_bc_alpha: α of the actor's cloning of S^e's expert actions,
             ``λ·(−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x) − a)/h‖²/m``, λ = α / mean|Q| (``wbrm`` and ``brm`` with a
-            continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's, 2.5 (0 for
+            continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's, 1.0 (0 for
             MountainCar, which clones D); 0: off (the paper's actor, which only maximises Q). Setting one of
             ``bc_alpha`` and ``expert_bc_alpha`` turns the other off unless it is set too (both on is refused).
         grad_clip: max gradient norm (``None``: off).
