@@ -93,10 +93,11 @@ def test_trainer_with_q_compile_keeps_its_cache_in_the_run_directory(tmp_path, m
 def test_q_compile_reaches_the_bellman_step():
     """q.compile=true gives the step compiled losses (building them compiles nothing yet: torch.compile is lazy)."""
     from torchrl_wbrm.training.algos import AlgoContext, build_algo
-    from torchrl_wbrm.training.config import WBRMConfig
+    from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults
 
     for compile_, expected in ((True, CompiledBellmanLosses), (False, type(None))):
-        cfg = WBRMConfig()
+        cfg = resolve_defaults(WBRMConfig())  # the env's settings, as the trainer resolves them
+        cfg.q.expert_bc_alpha = 0.0  # no task data here for the S^e cloning term
         cfg.q.compile = compile_
         cfg.q.num_cells = cfg.q.actor_num_cells = [8]
         algo = build_algo("wbrm", AlgoContext(cfg=cfg, observation_dim=3, action_dim=2, action_spec=SPEC, gamma=0.9,
