@@ -96,3 +96,24 @@ def compose_recipe(*overrides: str, config_name: str = "wbrm_offline"):
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(config_name, overrides=[*overrides, "threads=1"])
+
+
+#: the tiny LQR run of the reliability tests (tests/test_reliability_*.py): 2×16 networks, a few dozen steps
+TINY_LQR = {
+    "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
+    "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
+    "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
+    "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 300},
+    "logger": {"backend": "", "log_every": 5},
+    "plots": False,
+}
+
+
+def tiny_lqr_config(*layers: dict, **overrides):
+    """A ``WBRMConfig`` of :data:`TINY_LQR`, then each of ``layers`` (a test file's own base), then ``overrides``
+    (sections as dicts, merged in that order: the last wins)."""
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), TINY_LQR, *layers, overrides))

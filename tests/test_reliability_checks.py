@@ -17,31 +17,19 @@ from tensordict import TensorDict
 from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets
 from torchrl_wbrm.data.datasets import min_behaviour_episodes
 from torchrl_wbrm.data.factory import EnvConfig
+from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.guards import RunInterrupted
 from torchrl_wbrm.training.reporting import summarise
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
 
 
 def tiny(**overrides) -> WBRMConfig:
-    base = {
-        "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
-        "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
-        "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
-        "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 300},
-        "logger": {"backend": "", "log_every": 5},
-        "checkpoint_every": 0,
-        "plots": False,
-    }
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), base, overrides))
+    """The tiny LQR run (tests/references.py), with this file's own settings."""
+    return tiny_lqr_config({"checkpoint_every": 0}, **overrides)
 
 
 # ---------------------------------------------------------------------- a failed stage 1

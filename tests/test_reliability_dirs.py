@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf, open_dict
+from omegaconf import open_dict
 
+from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig
 from torchrl_wbrm.training.guards import RunDirGuard, RunDirInUse, claim_run_dir, take_claim
@@ -32,24 +33,12 @@ TINY = [
 ]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
 
 
 def tiny(**overrides) -> WBRMConfig:
-    base = {
-        "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
-        "ratio": {"steps": 20, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
-        "q": {"steps": 20, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
-        "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 300},
-        "logger": {"backend": "", "log_every": 5},
-        "plots": False,
-    }
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), base, overrides))
+    """The tiny LQR run (tests/references.py), with this file's own settings."""
+    return tiny_lqr_config({"ratio": {"steps": 20}, "q": {"steps": 20}}, **overrides)
 
 
 def snapshot(root: Path) -> dict[str, tuple[int, str, int]]:

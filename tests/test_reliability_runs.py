@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
+from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.algos import ALGOS
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
@@ -28,26 +28,13 @@ from torchrl_wbrm.training.plots import LOSS_TITLES
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
 
 
 def tiny(**overrides) -> WBRMConfig:
-    base = {
-        "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
-        "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
-        "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16],
-              "lr_schedule": "constant"},  # a budget can grow only under a constant rate (see the cosine test)
-        "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 400},
-        "logger": {"backend": "", "log_every": 5},
-        "checkpoint_every": 10,
-        "plots": False,
-    }
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), base, overrides))
+    """The tiny LQR run (tests/references.py), with this file's own settings."""
+    return tiny_lqr_config({"q": {"lr_schedule": "constant"},  # a budget can grow only under a constant rate (see the cosine test)
+        "eval": {"q_samples": 400}, "checkpoint_every": 10}, **overrides)
 
 
 def snapshot(root: Path) -> dict[str, tuple[int, str, int]]:
