@@ -11,7 +11,7 @@ the TensorDict loss paths, torchrl's SoftUpdate and replay-buffer sampling, the 
 times each, in this process, and prints each part's median seconds and the median new/old ratio: on a shared,
 loaded machine the ratio holds when the absolute seconds do not.
 
-The config is composed from ``torchrl_wbrm/configs/wbrm_offline.yaml`` exactly as the recipe does (Hydra's compose API, the same
+The config is composed from ``configs/wbrm_offline.yaml`` exactly as the recipe does (Hydra's compose API, the same
 overrides); the trainer runs unchanged, with timers wrapped around its methods:
 
 * imports: a fresh interpreter importing what the recipe imports (hydra, torch, torchrl, torchrl_wbrm.training);
@@ -50,11 +50,12 @@ def instrumented_run(overrides: list[str], run_dir: Path) -> tuple[dict, dict]:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
+    from torchrl_wbrm.configs import CONFIG_DIR
     from torchrl_wbrm.training import WBRMTrainer, register_configs
     from torchrl_wbrm.training.logging import make_logger
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=overrides)
     seconds: dict[str, float] = defaultdict(float)
     t0 = time.perf_counter()

@@ -123,7 +123,7 @@ def compose(overrides: list[str]):
     from hydra import initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs
-    from torchrl_wbrm.training.runs import CONFIG_DIR
+    from torchrl_wbrm.configs import CONFIG_DIR
 
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):

@@ -27,10 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def run(overrides, *, shortcuts: bool, fused: bool, run_dir: Path) -> dict:
     from hydra import compose, initialize_config_dir
 
+    from torchrl_wbrm.configs import CONFIG_DIR
     from torchrl_wbrm.training import WBRMTrainer, register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=["logger=none", "plots=false", *overrides])
     with old_paths(shortcuts=shortcuts, fused=fused):
         trainer = WBRMTrainer(cfg, run_dir, progress=False)

@@ -16,7 +16,7 @@ datasets record ``MountainCarContinuous-v0`` as their env; the LQR systems are n
 the spaces only (evaluate them with this project's LQR envs).
 
 The same recipe is installed as the ``wbrm-make-dataset`` command: the Hydra app is
-:func:`torchrl_wbrm.cli.make_dataset`, its config ``torchrl_wbrm/configs/make_dataset.yaml``.
+:func:`torchrl_wbrm.cli.make_dataset`, its config ``configs/make_dataset.yaml``.
 """
 from torchrl_wbrm.cli import make_dataset as main
 

@@ -9,10 +9,10 @@
         --out results/paper_tables_cql_lagrange       # a variant's cells and budget check, every run overridden
 
 The default envs are the paper's three LQR experiments, ``lqr_nondiag`` (an LQR system not in the paper, with
-coupled dynamics and control: ``torchrl_wbrm/configs/env/lqr_nondiag.yaml``) and MountainCar. The table budget is
+coupled dynamics and control: ``configs/env/lqr_nondiag.yaml``) and MountainCar. The table budget is
 ``torchrl_wbrm.training.runs.TABLE_BUDGET`` (the same for every algorithm: 2×128 networks and 2,000 steps, evaluated
 every 500 steps for the learning curves, CQL with 4 random actions per state; ``--quick``: ``TABLE_QUICK_BUDGET``).
-Everything else is ``torchrl_wbrm/configs/wbrm_offline.yaml``. The algorithms are the registry's (``torchrl_wbrm.algos.ALGOS``).
+Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's (``torchrl_wbrm.algos.ALGOS``).
 
 Then the budget check (``--budget-envs``, default ``lqr_exp1``; ``--budget-steps``, default 1,000 and 4,000): those
 envs' cells again at other step budgets, each its own runs on the same data and seeds, into

@@ -4,7 +4,7 @@
     python recipes/q_accuracy_study.py --blocks mountain_car   # MountainCar: default vs TD3+BC, 5 seeds
     python recipes/q_accuracy_study.py --quick           # a smoke version (seconds; CI runs it)
 
-Every cell is a set of overrides of ``torchrl_wbrm/configs/wbrm_offline.yaml`` on top of the recipe's defaults (the weighted
+Every cell is a set of overrides of ``configs/wbrm_offline.yaml`` on top of the recipe's defaults (the weighted
 method, learned ŵ and its shaping), one factor changed at a time, run for several seeds in parallel processes with
 one torch thread each. Finished cells (their results.json exists) are skipped, so an interrupted study resumes.
 
@@ -101,7 +101,7 @@ FIVE_SEED_LEVELS = {("weighting", "unweighted")}
 #: ensemble; the rest in block order
 PRIORITY = [("weighting", "unweighted"), ("activation", "ReLU"), ("lr schedule", "constant"),
             ("step budget", "6000"), ("ensemble", "two, mean")]
-MOUNTAIN_CAR = {  # env=mountain_car's defaults keep SiLU Q (torchrl_wbrm/configs/env_defaults/mountain_car.yaml); GELU beside it
+MOUNTAIN_CAR = {  # env=mountain_car's defaults keep SiLU Q (configs/env/mountain_car.yaml); GELU beside it
     "wbrm (the recipe's default)": [],
     "td3bc, same budget": ["algo=td3bc"],
     "wbrm, GELU Q": ["q.activation=GELU"],

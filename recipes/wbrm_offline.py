@@ -9,7 +9,7 @@
     python recipes/wbrm_offline.py resume=outputs/wbrm_offline/...  # continue an interrupted run exactly
 
 The same recipe is installed as the ``wbrm-offline`` command (and ``python -m torchrl_wbrm``): the Hydra app is
-:func:`torchrl_wbrm.cli.wbrm_offline`, its config ``torchrl_wbrm/configs/wbrm_offline.yaml``.
+:func:`torchrl_wbrm.cli.wbrm_offline`, its config ``configs/wbrm_offline.yaml``.
 
 Writes results.json, history.json, training_curve.png, evaluation.png, logs/ and checkpoint.pt in the run directory.
 """

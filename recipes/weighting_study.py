@@ -6,7 +6,7 @@
     python recipes/weighting_study.py --blocks regimes --regimes "behaviour start wide (x₀ ~ N(0, 3² I))"
     python recipes/weighting_study.py ... --first-seed 10 --seeds 10 --out <new>   # fresh seeds 10-19
 
-Each cell is a set of overrides of ``torchrl_wbrm/configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
+Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
 one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
 resumes. Outputs in ``--out``: one run directory per cell and seed, ``tables.md`` (mean ± 95% CI over seeds) and
 ``weighting_study.png``.

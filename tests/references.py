@@ -9,7 +9,7 @@ Every learning threshold in the suite is derived from these figures, computed ex
 - :func:`policy_q`: the exact Q of a linear-Gaussian policy (unclipped reward, infinite horizon, discounted, like
   :meth:`~torchrl_wbrm.envs.LQREnv.optimal_q`), so a Q̂ test can compare against what an estimator would reach if it
   merely evaluated the behaviour policy.
-- :func:`compose_recipe`: ``torchrl_wbrm/configs/wbrm_offline.yaml`` composed by Hydra exactly as the recipe composes it, plus
+- :func:`compose_recipe`: ``configs/wbrm_offline.yaml`` composed by Hydra exactly as the recipe composes it, plus
   overrides (small budgets), so a trainer-level test follows the recipe's defaults whatever they become.
 """
 from __future__ import annotations
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.envs import LQRConfig, LQREnv
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG_DIR = ROOT / "torchrl_wbrm" / "configs"
 
 
 def lqr_env(experiment: str | LQRConfig) -> LQREnv:
@@ -88,7 +88,7 @@ def relative_q_error(q_hat: torch.Tensor, q_star: torch.Tensor) -> float:
 
 
 def compose_recipe(*overrides: str, config_name: str = "wbrm_offline"):
-    """The recipe's config (``torchrl_wbrm/configs/<config_name>.yaml``, its defaults list, the schema) with ``overrides``."""
+    """The recipe's config (``configs/<config_name>.yaml``, its defaults list, the schema) with ``overrides``."""
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs

@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 
 from torchrl_wbrm.algos import ALGOS, algo_names, algo_table, build_algo, get_algo, register_algo, unregister_algo
 from torchrl_wbrm.algos.brm import build_brm
+from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.data import EnvConfig
 from torchrl_wbrm.data.tasks import TASKS, get_task
 from torchrl_wbrm.training.config import BaselinesConfig, WBRMConfig, register_configs, validate_config
@@ -30,7 +31,7 @@ BUILT_IN = {"wbrm", "brm", "bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "m
 
 def _compose(*overrides: str):
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return OmegaConf.to_object(compose("wbrm_offline", overrides=list(overrides)))
 
 
@@ -52,9 +53,9 @@ def test_every_algo_has_a_config_node_that_the_recipe_composes(name):
 
 
 def test_no_yaml_shadows_the_algo_nodes():
-    """The ``algo`` group is the registry's (``register_configs``); a ``torchrl_wbrm/configs/algo/<name>.yaml`` would take the
+    """The ``algo`` group is the registry's (``register_configs``); a ``configs/algo/<name>.yaml`` would take the
     node's place, so there is none."""
-    assert not list((ROOT / "torchrl_wbrm" / "configs" / "algo").glob("*.yaml"))
+    assert not list((CONFIG_DIR / "algo").glob("*.yaml"))
 
 
 def test_baselines_config_holds_every_algo_with_settings():
@@ -87,7 +88,7 @@ def test_a_registered_algo_is_valid_and_listed(toy_algo):
     assert "toy" in paper_tables.available_algos()
     # its Hydra node: algo=toy composes (the schema's baselines hold the algos registered at import)
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         assert compose("wbrm_offline", overrides=["algo=toy"]).algo == "toy"
 
 

@@ -5,7 +5,7 @@
   checked.
 - Each trainer discounts with the env's γ (by value for the Bellman-residual family) and sees the right data
   (only ``wbrm`` reads the stage-1 weights).
-- Each learns LQR exp1 on the recipe's own config (``torchrl_wbrm/configs/wbrm_offline.yaml`` composed by Hydra, so its defaults
+- Each learns LQR exp1 on the recipe's own config (``configs/wbrm_offline.yaml`` composed by Hydra, so its defaults
   are the recipe's: for ``wbrm`` the learned ŵ with its shaping ``ratio.temper``) with a small budget. The thresholds
   are computed, never typed in (:mod:`tests.references`): the exact regret of the behaviour policy's mean action
   ``a = −½Kx`` (0.083 on exp1; the zero action's is 0.360 and the optimum's 0), and for Q̂ the error of the best

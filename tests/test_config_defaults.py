@@ -1,15 +1,12 @@
-"""One source of truth for defaults: the recipe's YAML (``torchrl_wbrm/configs/wbrm_offline.yaml`` with its default groups)
+"""One source of truth for defaults: the recipe's YAML (``configs/wbrm_offline.yaml`` with its default groups)
 composes to the schema's defaults, ``WBRMConfig()``, except the differences the YAML documents as by design."""
 from __future__ import annotations
-
-from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
+from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.training.config import WBRMConfig, register_configs
-
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "torchrl_wbrm" / "configs"
 
 #: set by the YAML on purpose (its comments say why): none of them changes the method
 INTENDED = {"threads": 1}

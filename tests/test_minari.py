@@ -312,7 +312,7 @@ def test_discrete_action_learning(tmp_path, cartpole_grid, single_thread):
     cfg = {"env": {"name": "cartpole", "kind": "minari", "minari": vars(_cartpole_config(cartpole_grid))},
            "ratio": {"steps": 100, "eval_every": 50, "batch_size": 256, "num_cells": [64, 64]},
            "q": {"steps": 1000, "eval_every": 1000, "num_cells": [64, 64], "gamma": 0.99,
-                 "normalise_observations": True},  # torchrl_wbrm/configs/env_defaults/minari.yaml's
+                 "normalise_observations": True},  # configs/env/minari.yaml's
            "eval": {"episodes": 5, "train_episodes": 3}, "plots": False, "checkpoint_every": 0, "threads": 1}
     results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
     final, data = results["final"], results["data"]

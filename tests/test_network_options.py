@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torch import nn
 
+from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.modules import (
     ACTIVATIONS,
     DensityRatioNetwork,
@@ -141,7 +142,7 @@ def _trainer(tmp_path, *overrides, resume=False):
     from torchrl_wbrm.training import WBRMTrainer, register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=[
             "env.lqr_data.behaviour_episodes=60", "env.lqr_data.expert_episodes=30", "env.lqr_data.parallel_envs=30",
             "ratio.steps=10", "ratio.eval_every=5", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
@@ -203,7 +204,7 @@ def _compose(*overrides):
     from torchrl_wbrm.training import register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose("wbrm_offline", overrides=list(overrides))
 
 

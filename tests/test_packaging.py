@@ -1,4 +1,4 @@
-"""A non-editable install: the wheel ships the configs, and its ``wbrm-offline`` command and ``python -m torchrl_wbrm``
+"""A non-editable install: the wheel ships the configs (the top-level ``configs/``, mapped to ``torchrl_wbrm.configs``), and its ``wbrm-offline`` command and ``python -m torchrl_wbrm``
 run the recipe from any directory.
 
 The wheel is built from a copy of the package sources (no build isolation, nothing downloaded) and installed with
@@ -36,9 +36,10 @@ TINY = [
 def wheel(tmp_path_factory) -> Path:
     """The project's wheel, built offline from a copy of its sources."""
     src = tmp_path_factory.mktemp("src")
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
+    for name in ("pyproject.toml", "setup.py", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, src / name)
-    shutil.copytree(ROOT / "torchrl_wbrm", src / "torchrl_wbrm", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for folder in ("torchrl_wbrm", "configs"):
+        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     out = tmp_path_factory.mktemp("dist")
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
                            "-q", "-w", str(out), str(src)], capture_output=True, text=True, timeout=300)
@@ -65,9 +66,12 @@ def installed(wheel, tmp_path_factory) -> Path:
 
 def test_the_wheel_ships_the_configs_and_the_commands(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
-    configs = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "torchrl_wbrm" / "configs").rglob("*.yaml"))
+    # the clone's top-level configs/ is the package torchrl_wbrm.configs in the wheel
+    configs = sorted(f"torchrl_wbrm/configs/{p.relative_to(ROOT / 'configs').as_posix()}"
+                     for p in (ROOT / "configs").rglob("*.yaml"))
     assert {"torchrl_wbrm/configs/wbrm_offline.yaml", "torchrl_wbrm/configs/env/lqr_exp1.yaml"} <= set(configs)
     assert [c for c in configs if c not in names] == []  # every config of the source tree, group folders included
+    assert "torchrl_wbrm/configs/__init__.py" in names and not [n for n in names if n.startswith("configs/")]
     assert "torchrl_wbrm/cli.py" in names and "torchrl_wbrm/__main__.py" in names
     (entry_points,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
@@ -85,6 +89,9 @@ def test_installed_command_runs_the_recipe_from_another_directory(installed, tmp
     where = subprocess.run([str(installed / "python"), "-c", "import torchrl_wbrm; print(torchrl_wbrm.__file__)"],
                            cwd=work, env=env, capture_output=True, text=True, check=True).stdout.strip()
     assert not Path(where).is_relative_to(ROOT) and Path(where).is_relative_to(installed.parent), where
+    configs = subprocess.run([str(installed / "python"), "-c", "import torchrl_wbrm.configs as c; print(c.CONFIG_DIR)"],
+                             cwd=work, env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(configs) == Path(where).parent / "configs" and (Path(configs) / "env" / "lqr_exp1.yaml").is_file()
     for name, cmd in (("console", [str(installed / "wbrm-offline")]),
                       ("module", [str(installed / "python"), "-m", "torchrl_wbrm"])):
         proc = subprocess.run([*cmd, *TINY, f"seed={len(name)}"], cwd=work, env=env, capture_output=True, text=True,
@@ -94,3 +101,15 @@ def test_installed_command_runs_the_recipe_from_another_directory(installed, tmp
         assert (run_dir / "results.json").is_file() and (run_dir / "checkpoint.pt").is_file()
         assert (run_dir / ".hydra" / "config.yaml").is_file()
         assert "run directory:" in proc.stdout and run_dir.name in proc.stdout.split("run directory:")[-1]
+
+
+def test_a_clone_imports_its_top_level_configs():
+    """In a clone (an editable install, as the README sets up), ``torchrl_wbrm.configs`` is the top-level ``configs/``:
+    the build's package-dir mapping, resolved by the editable install's finder."""
+    import torchrl_wbrm
+    from torchrl_wbrm.configs import CONFIG_DIR
+
+    if not Path(torchrl_wbrm.__file__).resolve().is_relative_to(ROOT):
+        pytest.skip("torchrl_wbrm is not imported from this clone")
+    assert CONFIG_DIR == ROOT / "configs" and (CONFIG_DIR / "wbrm_offline.yaml").is_file()
+    assert not (ROOT / "torchrl_wbrm" / "configs").exists()

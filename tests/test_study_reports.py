@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torchrl_wbrm.configs import CONFIG_DIR
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
@@ -237,7 +239,7 @@ def test_paper_tables_cover_every_lqr_env_that_ran(tmp_path):
     """A run of lqr_nondiag (not in the paper) enters Table 2 and every LQR table with its own exact optimum, and
     the figures; the default envs include it."""
     assert "lqr_nondiag" in paper_tables.DEFAULT_ENVS
-    assert (ROOT / "torchrl_wbrm" / "configs" / "env" / "lqr_nondiag.yaml").is_file()
+    assert (CONFIG_DIR / "env" / "lqr_nondiag.yaml").is_file()
     _run(tmp_path, "lqr_exp1", "wbrm", 0, {1000: 0.02, 2000: 0.01}, optimum=85.435)
     _run(tmp_path, "lqr_nondiag", "wbrm", 0, {1000: 0.5, 2000: 0.25}, optimum=71.25)
     _run(tmp_path, "lqr_nondiag", "td3bc", 0, {1000: 0.5, 2000: 0.125}, optimum=71.25)
@@ -305,7 +307,7 @@ def test_weighting_study_levels_set_the_shaping_their_labels_name():
     }
     cells = weighting_study.build_cells(quick=False)
     seen = set()
-    with initialize_config_dir(config_dir=str(ROOT / "torchrl_wbrm" / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         default = compose("wbrm_offline").ratio
         for cell in cells:
             label = cell["method"]

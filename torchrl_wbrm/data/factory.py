@@ -25,13 +25,13 @@ ENV_KINDS = tuple(TASKS)
 
 @dataclass
 class EnvConfig:
-    """Which environment, with which data (a Hydra structured config; see ``torchrl_wbrm/configs/env/``).
+    """Which environment, with which data (a Hydra structured config; see ``configs/env/``).
 
     Attributes:
         name: a label for logs and tables (``lqr_exp1``, ``mountain_car``, ...).
         kind: the task (:data:`~torchrl_wbrm.data.tasks.TASKS`): ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two
             local Minari datasets, ``minari``).
-        lqr: the LQR system (any F, G, R; the paper's three are ``torchrl_wbrm/configs/env/lqr_exp{1,2,3}.yaml``).
+        lqr: the LQR system (any F, G, R; the paper's three are ``configs/env/lqr_exp{1,2,3}.yaml``).
         lqr_data: LQR dataset sizes and policies.
         mountain_car_data: MountainCar dataset sizes and policies.
         minari: the expert and behaviour Minari datasets and the evaluation env (``kind="minari"``).

@@ -1,6 +1,6 @@
 """Structured (dataclass) Hydra configs of the recipes: a misspelt key or a bad type fails at start.
 
-``register_configs()`` stores the schemas in Hydra's ``ConfigStore``; the YAML files under ``torchrl_wbrm/configs/`` name
+``register_configs()`` stores the schemas in Hydra's ``ConfigStore``; the YAML files under ``configs/`` name
 them first in their defaults list, so every value they set is checked against the schema. Values are checked
 again by :func:`validate_config` (allowed names, ranges), which names the setting and what is allowed.
 """

@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from torchrl_wbrm.configs import CONFIG_DIR
+
 __all__ = [
     "CONVERGENCE_BUDGET",
     "CONVERGENCE_QUICK_BUDGET",
@@ -97,11 +99,10 @@ CONVERGENCE_QUICK_BUDGET = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", 
 LABELS = ("block", "env", "setting", "method")
 
 ROOT = Path(__file__).resolve().parents[2]
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"  # torchrl_wbrm/configs (torchrl_wbrm.configs.CONFIG_DIR)
 
 
 def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline"):
-    """``torchrl_wbrm/configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
+    """``configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs
@@ -132,7 +133,7 @@ def finished_results(run_dir: str | os.PathLike, cfg) -> dict | None:
 def run_overrides(
     overrides: list[str], run_dir: str | os.PathLike, *, extra_results: dict | None = None, config_name: str = "wbrm_offline"
 ) -> dict:
-    """Compose ``torchrl_wbrm/configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
+    """Compose ``configs/<config_name>.yaml`` with ``overrides``, train with one torch thread and return the results
     (with the run's ``wall_seconds``).
 
     A finished run (:func:`finished_results`: its ``results.json`` exists, and it ran with this config) is not run
