@@ -105,7 +105,7 @@ def test_missing_file_and_bad_metadata_name_the_file(saved):
 def test_non_finite_data_are_refused(small_data):
     d = small_data.transitions[:].clone()
     d["next", "reward"][3] = float("nan")
-    with pytest.raises(ValueError, match=r"transitions set has non-finite values in \('next', 'reward'\) \(1 of"):
+    with pytest.raises(ValueError, match=r"^The transitions set: episode \d+, step \d+ \(row 3\): 'next/reward' is nan;"):
         OfflineDatasets.from_tensordicts(d, small_data.behaviour_samples[:], small_data.expert_samples[:])
 
 

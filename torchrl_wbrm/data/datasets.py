@@ -36,6 +36,8 @@ __all__ = [
     "TRANSITION_KEYS",
     "PairedSampler",
     "episode_returns",
+    "check_finite",
+    "read_saved_dataset",
 ]
 
 #: 2: metadata.json records every file's dtype, shape, size and SHA-256 (1 had none).
@@ -286,10 +288,7 @@ class OfflineDatasets:
                     f"set has {reference}. Expert and behaviour data must come from the same env."
                 )
         for name, td in content.items():
-            for key, value in td.items(True, True):
-                if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-                    bad = int((~torch.isfinite(value)).reshape(value.shape[0], -1).any(-1).sum())
-                    raise ValueError(f"The {name} set has non-finite values in {key!r} ({bad} of {value.shape[0]} rows).")
+            check_finite(td, f"The {name} set")
 
     # ------------------------------------------------------------------ sampling
     def paired_sampler(self, batch_size: int) -> "PairedSampler":
@@ -372,24 +371,10 @@ class OfflineDatasets:
 
         Files are opened read-only and never padded, truncated or rewritten. A missing file, a size, dtype or shape
         that differs from the metadata, or a SHA-256 that differs from the recorded one raises an error naming the
-        file and what was expected and found (``FileNotFoundError`` for a missing file, ``ValueError`` otherwise).
+        file and what was expected and found (``FileNotFoundError`` for a missing file, ``ValueError`` otherwise); so
+        does a NaN or infinite value, naming the set, the key, the episode and the step (:func:`read_saved_dataset`).
         """
-        path = Path(path)
-        meta = dict(cls.read_metadata(path))
-        meta.pop("format_version")
-        sizes = meta.pop("sizes", {})
-        files = meta.pop("files", None)
-        if not isinstance(files, dict):
-            raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no 'files' (their checksums).")
-        parts = {}
-        for name in PARTS:
-            part = path / name
-            if not part.is_dir():
-                raise FileNotFoundError(f"Dataset at {path} is missing its {name!r} part ({part}).")
-            entries = files.get(name)
-            if not isinstance(entries, dict) or not entries:
-                raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no files for its {name!r} part.")
-            parts[name] = _read_verified_part(path, name, entries, sizes.get(name))
+        meta, parts = read_saved_dataset(path)
         return cls.from_tensordicts(
             parts["transitions"],
             parts["behaviour_samples"],
@@ -398,6 +383,113 @@ class OfflineDatasets:
             storage=storage,
             scratch_dir=scratch_dir,
         )
+
+
+class HeldRead:
+    """One read of files on disk, held for the next reader of the same files, once: a run's data are read and checked
+    before anything is written (:class:`~torchrl_wbrm.training.guards.RunDirGuard`), and its trainer takes that read
+    instead of reading the files again. The key holds every file's size and modification time, so a file changed in
+    between is read again."""
+
+    def __init__(self) -> None:
+        self._key, self._value = None, None
+
+    def take(self, key):
+        """The value held under ``key`` (once), or ``None``."""
+        if self._key is None or key != self._key:
+            return None
+        value, self._key, self._value = self._value, None, None
+        return value
+
+    def hold(self, key, value) -> None:
+        """Hold ``value`` under ``key`` (replacing whatever was held)."""
+        self._key, self._value = key, value
+
+
+def files_key(*paths: str | os.PathLike) -> tuple:
+    """Which files ``paths`` hold, as they are now: each file's path, size and modification time (a folder's files,
+    recursively), for :class:`HeldRead`."""
+    out = []
+    for path in paths:
+        path = Path(path).resolve()
+        files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+        for file in files:
+            stat = file.stat()
+            out.append((str(file), stat.st_size, stat.st_mtime_ns))
+    return tuple(out)
+
+
+def first_non_finite_row(td: TensorDictBase) -> tuple[str, int, float] | None:
+    """The first row of ``td`` (a flat set) holding a NaN or infinite number, as ``(key, row, value)`` (the first
+    such key, in key order, of the first such row), or ``None``."""
+    first = None
+    for key, value in td.items(True, True):
+        if not value.is_floating_point() or value.ndim == 0:
+            continue
+        bad = ~torch.isfinite(value.reshape(value.shape[0], -1))
+        rows = bad.any(-1).nonzero()
+        if rows.numel() and (first is None or int(rows[0]) < first[1]):
+            row = int(rows[0])
+            entry = value.reshape(value.shape[0], -1)[row][bad[row]][0]
+            first = ("/".join(key) if isinstance(key, tuple) else key, row, float(entry))
+    return first
+
+
+def check_finite(td: TensorDictBase, where: str) -> None:
+    """Refuse a set with a NaN or infinite number: a ``ValueError`` ``"<where>: episode E, step S: <key> is nan
+    ..."`` naming the first such row's episode and its step within the episode (its rank among that episode's rows,
+    which are in time order), or the row where the set has no ``"episode"`` ids."""
+    found = first_non_finite_row(td)
+    if found is None:
+        return
+    key, row, value = found
+    if "episode" in td.keys():
+        episodes = td.get("episode")
+        episode = int(episodes[row])
+        step = int((episodes[:row] == episode).sum())
+        where_in = f"episode {episode}, step {step} (row {row})"
+    else:
+        where_in = f"row {row}"
+    raise ValueError(f"{where}: {where_in}: {key!r} is {value}; every observation, action and reward must be finite "
+                     f"(fix or drop that episode, then save the dataset again).")
+
+
+#: a saved dataset read and verified before a run starts, for its trainer (:func:`read_saved_dataset`)
+_HELD_SAVED = HeldRead()
+
+
+def read_saved_dataset(path: str | os.PathLike, *, keep: bool = False) -> tuple[dict, dict[str, TensorDict]]:
+    """The metadata and the three sets of the dataset :meth:`OfflineDatasets.save` wrote to ``path``: every file
+    verified against ``metadata.json`` (size, dtype, shape, SHA-256) and every number checked finite
+    (:func:`check_finite`, the error naming the dataset, the set, the episode, the step and the key).
+
+    ``keep=True`` holds what was read for the next call on the same, unchanged files (once): a run checks its data
+    before it writes anything, and its trainer's :meth:`OfflineDatasets.load` then reads them once only.
+    """
+    path = Path(path)
+    key = (str(path.resolve()), files_key(path)) if path.is_dir() else None
+    held = _HELD_SAVED.take(key) if key is not None else None
+    if held is not None:
+        return dict(held[0]), dict(held[1])
+    meta = dict(OfflineDatasets.read_metadata(path))
+    meta.pop("format_version")
+    sizes = meta.pop("sizes", {})
+    files = meta.pop("files", None)
+    if not isinstance(files, dict):
+        raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no 'files' (their checksums).")
+    parts = {}
+    for name in PARTS:
+        part = path / name
+        if not part.is_dir():
+            raise FileNotFoundError(f"Dataset at {path} is missing its {name!r} part ({part}).")
+        entries = files.get(name)
+        if not isinstance(entries, dict) or not entries:
+            raise ValueError(f"Corrupt dataset at {path}: metadata.json lists no files for its {name!r} part.")
+        parts[name] = _read_verified_part(path, name, entries, sizes.get(name))
+        check_finite(parts[name], f"Dataset at {path}, its {name} set")
+    if keep:
+        _HELD_SAVED.hold(key, (meta, parts))
+    return dict(meta), dict(parts)
 
 
 def _file_digest(file: Path, chunk: int = 1 << 20) -> tuple[int, str]:

@@ -47,11 +47,12 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_wbrm.data.datasets import OfflineDatasets, episode_returns
+from torchrl_wbrm.data.datasets import HeldRead, OfflineDatasets, episode_returns, files_key, min_behaviour_episodes
 
 __all__ = [
     "MinariDataConfig",
     "make_minari_datasets",
+    "check_minari_data",
     "make_minari_eval_env",
     "OneHotActions",
     "minari_data_root",
@@ -192,25 +193,81 @@ def _action_tensor(actions: np.ndarray, action_space) -> torch.Tensor:
     return a.reshape(a.shape[0], -1)
 
 
-def read_minari_transitions(dataset, *, episode_offset: int = 0) -> TensorDict:
+def _first_non_finite(values: np.ndarray) -> int | None:
+    """The first row (step) of ``values`` holding a NaN or an infinity, or ``None``."""
+    if values.dtype.kind not in "fc":  # integers and booleans are finite
+        return None
+    bad = ~np.isfinite(values.reshape(values.shape[0], -1)).all(-1)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _check_episode(episode, action_space, name: str) -> None:
+    """Refuse an episode with a NaN or infinite observation, action or reward, or an action outside
+    ``action_space``: a ``ValueError`` naming the dataset (``name``), the episode, the first such step and the key."""
+    from gymnasium import spaces
+
+    where = f"{name}: episode {episode.id}"
+    arrays = {}
+    for key in ("observations", "actions", "rewards"):
+        values = np.asarray(getattr(episode, key))
+        if values.dtype.kind not in "fciub":
+            raise ValueError(f"{where}: {key} have dtype {values.dtype}; numbers are expected.")
+        step = _first_non_finite(values) if values.ndim else None
+        if step is not None:
+            raise ValueError(f"{where}, step {step}: {key} hold {values[step].tolist()}; every observation, action and "
+                             f"reward must be finite (fix or drop that episode).")
+        arrays[key] = values
+    actions, steps = arrays["actions"], len(arrays["rewards"])
+    if actions.shape[:1] != (steps,):
+        raise ValueError(f"{where}: {actions.shape[0] if actions.ndim else 0} actions for {steps} rewards; one "
+                         f"action per step is expected.")
+    if isinstance(action_space, spaces.Discrete):
+        if actions.size != steps:
+            raise ValueError(f"{where}: actions of shape {actions.shape[1:]} for the action space {action_space}; "
+                             f"one integer per step is expected.")
+        flat = actions.reshape(steps)
+        start, n = int(action_space.start), int(action_space.n)
+        outside = (flat != np.round(flat)) | (flat < start) | (flat >= start + n)
+    else:
+        size = int(np.prod(action_space.shape))
+        if actions.size != steps * size:
+            raise ValueError(f"{where}: actions of shape {actions.shape[1:]} for the action space {action_space}; "
+                             f"{size} number(s) per step are expected.")
+        flat = actions.reshape(steps, size).astype(np.float64)
+        low = np.broadcast_to(action_space.low, action_space.shape).reshape(size).astype(np.float64)
+        high = np.broadcast_to(action_space.high, action_space.shape).reshape(size).astype(np.float64)
+        outside = ((flat < low) | (flat > high)).any(-1)
+    if outside.any():
+        step = int(np.argmax(outside))
+        raise ValueError(f"{where}, step {step}: the action {actions[step].tolist()} lies outside the dataset's action "
+                         f"space {action_space}; every action must lie in it.")
+
+
+def read_minari_transitions(dataset, *, episode_offset: int = 0, name: str | None = None) -> TensorDict:
     """Every step of a ``MinariDataset`` as flat transitions in this project's layout (``[N]``, float32).
 
     Keys: ``observation``, ``action`` (one-hot for a ``Discrete`` space), ``("next", "observation" | "reward" |
     "done" | "terminated" | "truncated")`` and an integer ``"episode"`` (the Minari episode id plus
     ``episode_offset``).
+
+    Nothing is coerced: a NaN or infinite observation, action or reward, an action outside the dataset's action space
+    or a dataset with no steps is a ``ValueError`` naming the dataset (``name``, default its Minari id), the episode,
+    the first offending step and the key.
     """
+    name = name or f"Minari dataset {dataset.spec.dataset_id!r}"
     parts = []
     for episode in dataset.iterate_episodes():
-        obs = torch.as_tensor(np.asarray(episode.observations, dtype=np.float32))
         steps = len(episode.rewards)
         if steps == 0:
             continue
+        _check_episode(episode, dataset.action_space, name)
+        obs = torch.as_tensor(np.asarray(episode.observations, dtype=np.float32))
         if tuple(obs.shape[1:]) != tuple(dataset.observation_space.shape):
-            raise ValueError(f"Minari episode {episode.id} has observations of shape {tuple(obs.shape[1:])}, but the "
+            raise ValueError(f"{name}: episode {episode.id} has observations of shape {tuple(obs.shape[1:])}, but the "
                              f"dataset's observation space is {dataset.observation_space}.")
         obs = obs.reshape(obs.shape[0], -1)  # row-major, as the evaluation env's FlattenObservation
         if obs.shape[0] != steps + 1:
-            raise ValueError(f"Minari episode {episode.id} has {obs.shape[0]} observations for {steps} steps.")
+            raise ValueError(f"{name}: episode {episode.id} has {obs.shape[0]} observations for {steps} steps.")
         terminated = torch.as_tensor(np.asarray(episode.terminations, dtype=bool)).reshape(steps, 1)
         truncated = torch.as_tensor(np.asarray(episode.truncations, dtype=bool)).reshape(steps, 1)
         parts.append(TensorDict({
@@ -226,7 +283,8 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0) -> TensorDict:
             },
         }, batch_size=[steps]))
     if not parts:
-        raise ValueError("The Minari dataset holds no steps.")
+        raise ValueError(f"{name} holds no steps ({dataset.total_episodes} episodes): it is empty; give a dataset with "
+                         f"data.")
     return torch.cat(parts, 0)
 
 
@@ -234,19 +292,31 @@ def _space_text(space) -> str:
     return repr(space)
 
 
-def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str = "lazy",
-                         scratch_dir=None) -> OfflineDatasets:
-    """``S^e`` from ``data.expert``; ``D`` and ``S^b`` from ``data.behaviour`` split by episode (seeded by ``seed``).
+#: the datasets a run read and checked before it wrote anything, for its trainer (:func:`check_minari_data`)
+_HELD_PAIR = HeldRead()
 
-    Metadata record both datasets' ids and paths, their mean undiscounted episode returns (complete episodes), the
-    spaces, the action bounds and the evaluation env's id (``None`` if neither the config nor the dataset names
-    one).
-    """
-    from gymnasium import spaces
 
+def _read_pair(data: MinariDataConfig) -> tuple[tuple, tuple]:
+    """``(key, (expert dataset, behaviour dataset, expert transitions, behaviour transitions))``, every check of
+    :func:`check_minari_data` but the episode count passed: the read a run's check held (:data:`_HELD_PAIR`, under
+    ``key``, which names the files as they are now), or a new one."""
+    if not data.expert or not data.behaviour:
+        missing = [f"env.minari.{k}" for k in ("expert", "behaviour") if not getattr(data, k)]
+        raise ValueError(f"No Minari dataset given in {' and '.join(missing)}: env=minari reads two datasets; set "
+                         f"env.minari.expert=<id or path> and env.minari.behaviour=<id or path>.")
+    paths = [resolve_minari_dataset(ref, data.data_path) for ref in (data.expert, data.behaviour)]
+    key = (tuple(str(p.resolve()) for p in paths), files_key(*paths))
+    held = _HELD_PAIR.take(key)
+    if held is not None:
+        return key, held
+    names = {"expert": f"Minari expert dataset {data.expert!r}",
+             "behaviour": f"Minari behaviour dataset {data.behaviour!r}"}
     expert_ds, behaviour_ds = _open(data.expert, data.data_path), _open(data.behaviour, data.data_path)
-    for name, ds, ref in (("expert", expert_ds, data.expert), ("behaviour", behaviour_ds, data.behaviour)):
-        _check_spaces(ds.observation_space, ds.action_space, f"Minari {name} dataset {ref!r}")
+    for role, ds in (("expert", expert_ds), ("behaviour", behaviour_ds)):
+        _check_spaces(ds.observation_space, ds.action_space, names[role])
+        if ds.total_steps == 0:
+            raise ValueError(f"{names[role]} holds no steps ({ds.total_episodes} episodes): it is empty; give a "
+                             f"dataset with data.")
     for what in ("observation_space", "action_space"):
         a, b = getattr(expert_ds, what), getattr(behaviour_ds, what)
         if a != b:
@@ -254,8 +324,52 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
                 f"The Minari datasets have different {what.replace('_', ' ')}s: expert {data.expert!r} has "
                 f"{_space_text(a)}, behaviour {data.behaviour!r} has {_space_text(b)}. Both must come from the same env."
             )
-    expert = read_minari_transitions(expert_ds)
-    behaviour = read_minari_transitions(behaviour_ds)
+    envs = [getattr(getattr(ds.spec, "env_spec", None), "id", None) for ds in (expert_ds, behaviour_ds)]
+    if None not in envs and envs[0] != envs[1]:
+        raise ValueError(f"The Minari datasets come from different envs: expert {data.expert!r} from {envs[0]!r}, "
+                         f"behaviour {data.behaviour!r} from {envs[1]!r}. Both must come from the same env.")
+    pair = (expert_ds, behaviour_ds, read_minari_transitions(expert_ds, name=names["expert"]),
+            read_minari_transitions(behaviour_ds, name=names["behaviour"]))
+    return key, pair
+
+
+def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
+    """Everything that can refuse the Minari datasets ``data``, read and checked: both are given and on disk, have
+    supported and equal observation and action spaces, come from the same env (where both record one), hold steps,
+    and every observation, action and reward is finite and every action lies in the action space; the behaviour
+    dataset holds enough episodes to split. A refusal is a one-line ``ValueError`` (``FileNotFoundError`` for a
+    dataset not on disk) naming the dataset and, for a bad value, the episode, the first offending step and the key.
+
+    ``keep=True`` holds the data read for the next :func:`make_minari_datasets` on the same, unchanged files (once):
+    a run checks its data before it writes anything, and its trainer then reads them once only.
+    """
+    key, pair = _read_pair(data)
+    behaviour = pair[3]
+    episodes = int(torch.unique(behaviour["episode"]).numel())
+    needed = min_behaviour_episodes(data.ratio_fraction)
+    if episodes < needed:
+        raise ValueError(
+            f"The Minari behaviour dataset {data.behaviour!r} holds {episodes} episode(s) with steps; at least {needed} "
+            f"are needed (env.minari.ratio_fraction={data.ratio_fraction}: S^b takes at least one episode and D keeps "
+            f"at least two, which the trainer splits into its training and held-out sets)."
+        )
+    if keep:
+        _HELD_PAIR.hold(key, pair)
+
+
+def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str = "lazy",
+                         scratch_dir=None) -> OfflineDatasets:
+    """``S^e`` from ``data.expert``; ``D`` and ``S^b`` from ``data.behaviour`` split by episode (seeded by ``seed``).
+
+    The datasets are checked as they are read (:func:`check_minari_data`): bad data are refused, never trained on.
+
+    Metadata record both datasets' ids and paths, their mean undiscounted episode returns (complete episodes), the
+    spaces, the action bounds and the evaluation env's id (``None`` if neither the config nor the dataset names
+    one).
+    """
+    from gymnasium import spaces
+
+    _, (expert_ds, behaviour_ds, expert, behaviour) = _read_pair(data)
     action_space = expert_ds.action_space
     if isinstance(action_space, spaces.Discrete):
         low, high, discrete = [0.0] * int(action_space.n), [1.0] * int(action_space.n), int(action_space.n)

@@ -670,6 +670,8 @@ class RunDirGuard(Callback):
     In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
 
     * the config is validated (:func:`~torchrl_wbrm.training.config.validate_config`);
+    * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.data.tasks.Task.check_data`: a Minari
+      pair, or a saved dataset), and held for the run's trainer, which does not read them again;
     * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
       a checkpoint whose config this one may continue, and ``X`` is claimed;
     * a new run: the default dated directory is created with an exclusive ``mkdir`` (``_1``, ``_2``, ... when two
@@ -677,15 +679,22 @@ class RunDirGuard(Callback):
       ``overwrite=true``, which then removes the earlier run's outputs and its Hydra record.
 
     The claim is handed to the run's :class:`~torchrl_wbrm.training.WBRMTrainer` (:func:`take_claim`), which holds it
-    until the run ends. A refusal exits (``SystemExit``, status 1) with the reason; Hydra would only warn about an
-    exception raised by a callback.
+    until the run ends. A refusal exits (``SystemExit``, status 1) with the reason in one line, and with the
+    traceback before it only under ``verbose=true``; Hydra would only warn about an exception raised by a callback.
     """
 
     def on_run_start(self, config, **kwargs) -> None:
+        from omegaconf.errors import OmegaConfBaseException
+
         try:
             self.check(config)
-        except (ValueError, TypeError, KeyError, OSError, RuntimeError) as err:
-            raise SystemExit(f"Refused (nothing was written): {err}") from err
+        except (ValueError, TypeError, KeyError, OSError, RuntimeError, OmegaConfBaseException) as err:
+            if _verbose(config):
+                import traceback
+
+                traceback.print_exc()
+            reason = " ".join(str(err).split()) or type(err).__name__  # one line
+            raise SystemExit(f"Refused (nothing was written): {reason}") from err
 
     @staticmethod
     def check(config) -> RunDirClaim:
@@ -696,6 +705,7 @@ class RunDirGuard(Callback):
 
         cfg = _task_config(config)
         validate_config(cfg)
+        get_task(cfg.env).check_data()  # bad data are refused here, before anything is written
         raw_dir = OmegaConf.to_container(config.hydra.run, resolve=False)["dir"]
         dated = isinstance(raw_dir, str) and "${now:" in raw_dir
         if cfg.resume:
@@ -726,6 +736,16 @@ class RunDirGuard(Callback):
         _set_run_dir(config, run_dir)
         hand_over(claim)
         return claim
+
+
+def _verbose(config) -> bool:
+    """The composed config's ``verbose`` setting (``False`` where it cannot be read)."""
+    from omegaconf import OmegaConf
+
+    try:
+        return OmegaConf.select(config, "verbose", default=False) is True
+    except Exception:  # noqa: BLE001 (a config too broken to read: no traceback)
+        return False
 
 
 def _remove_empty(path: Path) -> None:

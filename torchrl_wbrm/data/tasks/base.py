@@ -102,6 +102,18 @@ class Task(ABC):
     def validate(self) -> None:
         """Check the env's data settings before any data are collected; ``ValueError`` naming the key."""
 
+    def check_data(self) -> None:
+        """Read and check the data on disk the config names, before a run writes anything (a one-line error naming
+        the dataset, and for a bad value the episode, the step and the key); what was read is held for this
+        process's next :meth:`make_datasets`, which then does not read it again. Data the task collects are not
+        checked here. By default: a saved dataset named by the data config's ``dataset_dir``
+        (:func:`~torchrl_wbrm.data.datasets.read_saved_dataset`)."""
+        from torchrl_wbrm.data.datasets import read_saved_dataset
+
+        directory = getattr(getattr(self, "data_config", None), "dataset_dir", None)
+        if directory:
+            read_saved_dataset(directory, keep=True)
+
     @abstractmethod
     def make_datasets(self, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
         """Collect (or read) the three sets ``D``, ``S^b``, ``S^e``."""

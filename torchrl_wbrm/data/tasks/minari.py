@@ -8,6 +8,7 @@ from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
     OneHotActions,
+    check_minari_data,
     make_minari_datasets,
     make_minari_eval_env,
 )
@@ -28,6 +29,9 @@ class MinariTask(Task):
     def __init__(self, env) -> None:
         super().__init__(env)
         self.data_config: MinariDataConfig = to_dataclass(MinariDataConfig, env.minari)
+
+    def check_data(self) -> None:
+        check_minari_data(self.data_config, keep=True)
 
     def make_datasets(self, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
         return make_minari_datasets(self.data_config, seed=seed, storage=storage, scratch_dir=scratch_dir)
