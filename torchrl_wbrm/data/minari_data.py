@@ -13,7 +13,10 @@ observation and action spaces and, when the data came from a registered gymnasiu
 A dataset is named by its Minari id (looked up under ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``, or
 ``MinariDataConfig.data_path``) or by a local path (the dataset's folder or its ``data/`` folder). Nothing is ever
 downloaded: a dataset that is not on disk is a ``FileNotFoundError`` naming the id and the path searched. Two
-datasets with different observation or action spaces are a ``ValueError`` naming both spaces.
+datasets with different observation or action spaces, or recorded on different envs, are a ``ValueError`` naming
+both. Nothing is coerced: a NaN or infinite observation, action or reward, an action outside the action space or an
+empty dataset is a one-line ``ValueError`` naming the dataset, the episode, the first offending step and the key
+(:func:`check_minari_data`, which the recipe runs before it writes anything).
 
 Spaces: a ``Box`` observation of any shape and a one-dimensional ``Box`` or a ``Discrete`` action. An observation
 of shape ``(d1, d2, ...)`` (a grid, an image) is read flattened (row-major, ``d1 d2 ...`` float32 numbers), and
