@@ -1,6 +1,6 @@
 """One file per algorithm (torchrl_wbrm/algos/), one task object per env (torchrl_wbrm/data/tasks/), and the recipes'
 lists read from them: an algorithm registered anywhere is a valid ``algo=`` of the recipe, has its Hydra node and is
-listed by the studies and the README."""
+listed by the studies and the configuration guide (docs/guides/configuration.md)."""
 from __future__ import annotations
 
 import ast
@@ -143,10 +143,10 @@ def test_an_algos_own_settings_are_checked_by_its_file():
         validate_config(cfg)
 
 
-def test_the_readme_lists_the_registered_algorithms():
-    text = (ROOT / "README.md").read_text()
+def test_the_configuration_guide_lists_the_registered_algorithms():
+    text = (ROOT / "docs" / "guides" / "configuration.md").read_text()
     block = re.search(r"<!-- algos -->\n(.*?)\n<!-- /algos -->", text, re.S)
-    assert block is not None, "README.md has no <!-- algos --> block"
+    assert block is not None, "docs/guides/configuration.md has no <!-- algos --> block"
     assert block.group(1).strip() == algo_table()
 
 

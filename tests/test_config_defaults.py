@@ -1,15 +1,17 @@
 """One source of truth for defaults: the recipe's YAML (``configs/wbrm_offline.yaml`` with its default groups)
-composes to the schema's defaults, ``WBRMConfig()``, except the differences the YAML documents as by design."""
+composes to the schema's defaults, ``WBRMConfig()``, key by key, ``threads`` included; ``WBRMConfig(env="<name>")``
+selects an env config as ``env=<name>`` does on the recipe's command line; ``WBRMTrainer(cfg)`` picks a run directory
+named as the recipe's."""
 from __future__ import annotations
+
+import inspect
+import re
 
 import pytest
 from omegaconf import OmegaConf
 
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.training.config import WBRMConfig, register_configs
-
-#: set by the YAML on purpose (its comments say why): none of them changes the method
-INTENDED = {"threads": 1}
 
 
 def _flat(tree, prefix=""):
@@ -21,29 +23,39 @@ def _flat(tree, prefix=""):
     return {prefix[:-1]: tree}
 
 
-def test_the_recipe_yaml_composes_to_the_schema_defaults():
+def _as_flat(cfg) -> dict:
+    return _flat(OmegaConf.to_container(OmegaConf.structured(cfg)))
+
+
+def _compose(*overrides: str):
     from hydra import compose, initialize_config_dir
 
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        composed = compose("wbrm_offline")
-    recipe = _flat(OmegaConf.to_container(OmegaConf.structured(OmegaConf.to_object(composed))))
-    schema = _flat(OmegaConf.to_container(OmegaConf.structured(WBRMConfig())))
+        return compose("wbrm_offline", overrides=list(overrides))
+
+
+def test_the_recipe_yaml_composes_to_the_schema_defaults():
+    """Every key of ``WBRMConfig()`` equals the recipe's composed default, with no exception (``threads`` is 1 in
+    both: one torch thread per run)."""
+    recipe = _as_flat(OmegaConf.to_object(_compose()))
+    schema = _as_flat(WBRMConfig())
     assert recipe.keys() == schema.keys()
-    differences = {key: (schema[key], recipe[key]) for key in schema if schema[key] != recipe[key]}
-    assert differences == {key: (schema[key], value) for key, value in INTENDED.items()}, differences
+    assert {key: (schema[key], recipe[key]) for key in schema if schema[key] != recipe[key]} == {}
+    assert schema["threads"] == 1
 
 
-def test_the_yaml_sets_only_its_by_design_values():
-    """Every value the top-level YAML sets (outside its defaults list and Hydra's own section) is listed above."""
+def test_the_yaml_sets_nothing_the_schema_does_not():
+    """A value the top-level YAML sets (outside its defaults list and Hydra's own section) equals the schema's."""
     top = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "wbrm_offline.yaml"))
     top.pop("defaults"), top.pop("hydra")
-    assert _flat(top) == INTENDED
+    schema = _as_flat(WBRMConfig())
+    assert {key: value for key, value in _flat(top).items() if schema.get(key, object()) != value} == {}
 
 
 ENVS = sorted(p.stem for p in (CONFIG_DIR / "env").glob("*.yaml"))
 #: what an env needs on the command line before it composes (the Minari datasets are mandatory, ``???``)
-REQUIRED = {"minari": ["env.minari.expert=e", "env.minari.behaviour=b"]}
+REQUIRED = {"minari": {"env.minari.expert": "e", "env.minari.behaviour": "b"}}
 
 
 def test_every_env_group_is_covered():
@@ -51,25 +63,50 @@ def test_every_env_group_is_covered():
 
 
 @pytest.mark.parametrize("env", ENVS)
-def test_the_python_api_resolves_every_env_as_the_recipe_does(env):
-    """``WBRMTrainer(WBRMConfig(env=...))`` and ``python recipes/wbrm_offline.py env=...`` run one method: the trainer
-    resolves both through ``_to_config`` (the env's task fills what the config leaves null), and the results agree
-    key by key, the env-specific ones (γ, the support term, the normalisation, the budget) included."""
-    from hydra import compose, initialize_config_dir
-
-    from torchrl_wbrm.data import EnvConfig
+def test_an_env_named_by_string_is_the_recipes_env(env):
+    """``WBRMConfig(env="<name>")`` equals ``python recipes/wbrm_offline.py env=<name>`` for every key, before and
+    after the env's task fills what the config leaves null (γ, the support term, the budget, ...)."""
     from torchrl_wbrm.data.tasks import get_task
     from torchrl_wbrm.training.trainer import _to_config
 
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        composed = compose("wbrm_offline", overrides=[f"env={env}", *REQUIRED.get(env, [])])
+    composed = _compose(f"env={env}", *(f"{k}={v}" for k, v in REQUIRED.get(env, {}).items()))
+    api = WBRMConfig(env=env)
+    for key, value in REQUIRED.get(env, {}).items():  # the Minari pair: set on the config, as a user does
+        assert OmegaConf.select(OmegaConf.structured(api), key) == ""
+        setattr(api.env.minari, key.rsplit(".", 1)[1], value)
+    assert _as_flat(api) == _as_flat(OmegaConf.to_object(composed))
     recipe = _to_config(composed)
-    env_config = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), composed.env))
-    api = _to_config(WBRMConfig(env=env_config, threads=1))
-    assert _flat(OmegaConf.to_container(OmegaConf.structured(api))) == \
-        _flat(OmegaConf.to_container(OmegaConf.structured(recipe)))
+    assert _as_flat(_to_config(api)) == _as_flat(recipe)
     task = get_task(recipe.env)
     for key, value in task.training_defaults().items():  # every env-derived setting came from the task
         section, name = key.split(".")
         assert getattr(getattr(recipe, section), name) == value, key
+
+
+def test_an_unknown_env_name_is_refused_naming_the_choices():
+    with pytest.raises(ValueError, match=r"env='lqr_exp9' is not an env config; the env configs are: .*lqr_exp1"):
+        WBRMConfig(env="lqr_exp9")
+
+
+def test_the_default_run_directory_is_named_as_the_recipes(tmp_path):
+    """``WBRMTrainer(cfg)`` needs no run directory: ``default_run_dir`` gives the recipe's
+    ``outputs/wbrm_offline/<env.name>/<date>_seed<seed>``, a fresh one for each call (``_1``, ``_2``, ...)."""
+    from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir
+
+    assert inspect.signature(WBRMTrainer).parameters["run_dir"].default is None
+    cfg = WBRMConfig(env="lqr_exp2", seed=3)
+    first, second = default_run_dir(cfg, tmp_path / "outputs"), default_run_dir(cfg, tmp_path / "outputs")
+    assert first.parent == second.parent == tmp_path / "outputs" / "lqr_exp2"
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d_\d\d-\d\d-\d\d_seed3", first.name), first.name
+    assert first != second and first.is_dir() and second.is_dir()
+    recipe_dir = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "wbrm_offline.yaml"))["hydra"]["run"]["dir"]
+    assert recipe_dir == "outputs/wbrm_offline/${env.name}/${now:%Y-%m-%d_%H-%M-%S}_seed${seed}"
+
+
+def test_a_resume_needs_its_run_directory(tmp_path, monkeypatch):
+    from torchrl_wbrm.training.trainer import WBRMTrainer
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match="resume=True needs the run directory"):
+        WBRMTrainer(WBRMConfig(), resume=True)
+    assert not (tmp_path / "outputs").exists()

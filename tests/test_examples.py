@@ -105,13 +105,12 @@ def test_weighted_iql_learns(outputs, regrets):
     assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
 
 
-def test_the_readme_shows_the_whole_reuse_script():
-    """The README's reuse script is examples/wbrm_ddpg_lqr.py itself, in full (the run above runs it)."""
-    readme = (ROOT / "README.md").read_text()
-    shown = re.search(r"<!-- example-source: wbrm_ddpg_lqr -->\n```python\n(.*?)```\n<!-- /example-source -->", readme,
-                      re.DOTALL)
-    assert shown, "README lacks the example-source block"
-    assert shown.group(1) == (ROOT / "examples" / "wbrm_ddpg_lqr.py").read_text()
+def test_the_docs_show_the_whole_reuse_script():
+    """The tutorial's reuse script is examples/wbrm_ddpg_lqr.py itself, in full (included from the file; the run above
+    runs it), and the README points to it."""
+    page = (ROOT / "docs" / "tutorials" / "torchrl_agent.md").read_text()
+    assert "```{literalinclude} ../../examples/wbrm_ddpg_lqr.py\n" in page, "the tutorial lacks the example's source"
+    assert "examples/wbrm_ddpg_lqr.py" in (ROOT / "README.md").read_text()
 
 
 def test_every_example_is_tested():
@@ -128,13 +127,13 @@ def test_examples_use_only_public_api():
         assert imports and all(m.count(".") == 1 for m in imports), (path, imports)  # package-level names
 
 
-def test_the_readme_shows_what_the_example_prints(outputs):
-    """README's output block of examples/wbrm_ddpg_lqr.py is what the quick run printed: the same lines, each figure
-    within 0.003 (another CPU may round the last digits of a float computation differently)."""
-    readme = (ROOT / "README.md").read_text()
+def test_the_docs_show_what_the_example_prints(outputs):
+    """The tutorial's output block of examples/wbrm_ddpg_lqr.py is what the quick run printed: the same lines, each
+    figure within 0.003 (another CPU may round the last digits of a float computation differently)."""
+    readme = (ROOT / "docs" / "tutorials" / "torchrl_agent.md").read_text()
     shown = re.search(r"<!-- example-output: wbrm_ddpg_lqr -->\n```\n(.*?)```\n<!-- /example-output -->", readme,
                       re.DOTALL)
-    assert shown, "README lacks the example-output block"
+    assert shown, "the tutorial lacks the example-output block"
     number = r"-?\d+\.\d+"
     expected, got = shown.group(1).strip().splitlines(), outputs["wbrm_ddpg_lqr"].strip().splitlines()
     assert len(expected) == len(got), (expected, got)

@@ -222,12 +222,12 @@ def test_native_priority_weight_list_matches_behaviour(name):
 
 
 def test_docs_name_the_native_losses_and_no_others():
-    """store_density_ratio's docs and the README's reuse section name the native list, and name IQLLoss and
+    """store_density_ratio's docs and the reuse tutorial's "The pieces" name the native list, and name IQLLoss and
     CQLLoss only as losses that need WeightedLoss."""
     import torchrl_wbrm.ratio.storing as storing
 
-    readme = (ROOT / "README.md").read_text()
-    section = readme.split("### Use the pieces in your own TorchRL script", 1)[1].split("\n## ", 1)[0]
+    page = (ROOT / "docs" / "tutorials" / "torchrl_agent.md").read_text()
+    section = page.split("## The pieces", 1)[1].split("\n## ", 1)[0]
     for text in (storing.__doc__ + store_density_ratio_doc(), section):
         listed = re.search(r"read\w*\s+``?\"priority_weight\"``?\s+(?:themselves|natively)[^.]*?\(([^)]*)\)", text)
         assert listed, text[:400]

@@ -14,14 +14,14 @@ Nothing is downloaded: every expert is a hand-made controller. Every task is bui
 
 The tasks (:data:`BENCHMARK_TASKS`) differ in horizon, reward scale and termination:
 
-========================== ============= ================= ====================================================
-task                        episode       terminations      expert
-========================== ============= ================= ====================================================
-``Pendulum-v1``             200 steps     none              energy-pumping swing-up with a PD catch
-``MountainCarContinuous-v0``≤ 999 steps   at the goal       push along the velocity, ``0.9 sign(v)``
-``LunarLanderContinuous-v3``≤ 1000 steps  landing or crash  gymnasium's own ``heuristic`` controller
-``InvertedPendulum-v5``     ≤ 1000 steps  the pole falls    a PD controller on the cart and the pole
-========================== ============= ================= ====================================================
+============================ ============= ================= ====================================================
+task                         episode       terminations      expert
+============================ ============= ================= ====================================================
+``Pendulum-v1``              200 steps     none              energy-pumping swing-up with a PD catch
+``MountainCarContinuous-v0`` ≤ 999 steps   at the goal       push along the velocity, ``0.9 sign(v)``
+``LunarLanderContinuous-v3`` ≤ 1000 steps  landing or crash  gymnasium's own ``heuristic`` controller
+``InvertedPendulum-v5``      ≤ 1000 steps  the pole falls    a PD controller on the cart and the pole
+============================ ============= ================= ====================================================
 
 ``LunarLanderContinuous-v3`` needs ``box2d`` and ``InvertedPendulum-v5`` needs ``mujoco`` (the ``benchmark`` extra:
 ``pip install -e ".[benchmark]"``).

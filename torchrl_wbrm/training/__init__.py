@@ -6,11 +6,12 @@ from torchrl_wbrm.training.config import (
     QConfig,
     RatioConfig,
     WBRMConfig,
+    env_config,
     register_configs,
     resolve_defaults,
     validate_config,
 )
-from torchrl_wbrm.training.trainer import WBRMTrainer, get_rng_state, set_rng_state, set_seed
+from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir, get_rng_state, set_rng_state, set_seed
 from torchrl_wbrm.training.weights import shape_weights
 
 __all__ = [
@@ -21,6 +22,8 @@ __all__ = [
     "RatioConfig",
     "WBRMConfig",
     "WBRMTrainer",
+    "default_run_dir",
+    "env_config",
     "get_rng_state",
     "register_configs",
     "set_rng_state",

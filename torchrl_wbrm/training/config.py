@@ -24,6 +24,7 @@ __all__ = [
     "QConfig",
     "RatioConfig",
     "WBRMConfig",
+    "env_config",
     "register_configs",
     "resolve_defaults",
     "validate_config",
@@ -230,7 +231,8 @@ class WBRMConfig:
     """``recipes/wbrm_offline.py``: the two-stage offline recipe.
 
     Attributes:
-        env: the environment and its data (group ``env``).
+        env: the environment and its data (group ``env``): an :class:`~torchrl_wbrm.data.EnvConfig`, or the name of an
+            env config as on the recipe's command line (``"lqr_exp1"``, ``"mountain_car"``, ``"minari"``: :func:`env_config`).
         algo: a name of :data:`torchrl_wbrm.algos.ALGOS` (group ``algo``, one file per algorithm under
             ``torchrl_wbrm/algos/``): ``"wbrm"`` (the two stages), ``"brm"`` (stage 2 alone with w ≡ 1: the
             unweighted ablation; the same as ``wbrm`` with ``ratio.source=none``), ``"bc"`` (behaviour cloning of the
@@ -238,7 +240,7 @@ class WBRMConfig:
         ratio: stage 1. q: stage 2 (and the shared settings of every algo). baselines: per-baseline settings. eval: evaluation. logger: logging (group ``logger``).
         seed: seeds data, initialisation and sampling.
         device: torch device.
-        threads: torch threads (``None``: torch's default).
+        threads: torch threads (default 1, as the recipe: sweeps run runs side by side; ``None``: torch's default).
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
         data_cache: a folder to keep collected datasets in, keyed by env config and seed (``None``: collect anew).
         resume: a run directory to resume from (``None``: a new run). Only the keys of
@@ -260,11 +262,42 @@ class WBRMConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = 0
     device: str = "cpu"
-    threads: Optional[int] = None
+    threads: Optional[int] = 1
     checkpoint_every: int = 1000
     data_cache: Optional[str] = None
     resume: Optional[str] = None
     overwrite: bool = False
+    def __post_init__(self):
+        if isinstance(self.env, str):  # a name of the recipe's env group, as ``env=lqr_exp1`` on its command line
+            self.env = env_config(self.env)
+
+
+def env_config(name: str) -> EnvConfig:
+    """The :class:`~torchrl_wbrm.data.EnvConfig` that ``env=<name>`` selects in the recipe: ``configs/env/<name>.yaml``
+    merged on the schema. ``WBRMConfig(env="lqr_exp1")`` calls it. The Minari datasets of ``env="minari"`` are
+    mandatory in the recipe (``env.minari.expert=... env.minari.behaviour=...``); here they are left empty, to be set
+    on the returned config (an empty one is refused when the run starts).
+
+    >>> env_config("lqr_exp3").lqr.F
+    [[0.7, 0.0], [0.0, 0.7]]
+    >>> env_config("lqr_exp9")
+    Traceback (most recent call last):
+    ...
+    ValueError: env='lqr_exp9' is not an env config; the env configs are: lqr_custom, lqr_exp1, ...
+    """
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.configs import CONFIG_DIR
+
+    names = sorted(path.stem for path in (CONFIG_DIR / "env").glob("*.yaml"))
+    if name not in names:
+        raise ValueError(f"env={name!r} is not an env config; the env configs are: {', '.join(names)}")
+    node = OmegaConf.load(CONFIG_DIR / "env" / f"{name}.yaml")
+    if "minari" in node:
+        for key in [k for k in ("expert", "behaviour") if OmegaConf.is_missing(node.minari, k)]:
+            del node.minari[key]  # mandatory on the command line (``???``): the schema's empty value here
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), node))
+
     plots: bool = True
     verbose: bool = False
 

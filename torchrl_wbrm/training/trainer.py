@@ -64,7 +64,7 @@ from torchrl_wbrm.training.guards import (
     write_json,
 )
 
-__all__ = ["WBRMTrainer", "set_seed", "get_rng_state", "set_rng_state"]
+__all__ = ["WBRMTrainer", "default_run_dir", "set_seed", "get_rng_state", "set_rng_state"]
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -111,12 +111,30 @@ def config_as_dict(cfg) -> dict:
     return OmegaConf.to_container(OmegaConf.structured(_to_config(cfg)))
 
 
+def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
+    """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
+    created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
+    second get directories of their own)."""
+    base = Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}"
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for n in range(10_000):
+        path = base if n == 0 else base.with_name(f"{base.name}_{n}")
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free run directory next to {base}")
+
+
 class WBRMTrainer:
     """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
 
     Args:
         cfg: a :class:`WBRMConfig` (or a Hydra ``DictConfig`` of one).
-        run_dir: where checkpoints, ``results.json`` and plots go.
+        run_dir: where checkpoints, ``results.json`` and plots go. ``None`` (the default): a new dated directory
+            under the working directory, as the recipe's: ``outputs/wbrm_offline/<env.name>/<date>_seed<seed>``
+            (:func:`default_run_dir`). A resume needs the directory it continues.
 
     Keyword Args:
         logger: a torchrl ``Logger`` (or ``None``).
@@ -129,10 +147,15 @@ class WBRMTrainer:
     nothing on disk (a resume of a directory that does not exist creates none).
     """
 
-    def __init__(self, cfg, run_dir: str | os.PathLike, *, logger=None, resume: bool = False, progress: bool = True):
+    def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger=None, resume: bool = False,
+                 progress: bool = True):
         self._claim: RunDirClaim | None = None
         self.cfg: WBRMConfig = _to_config(cfg)
         validate_config(self.cfg)
+        if run_dir is None:
+            if resume:
+                raise ValueError("resume=True needs the run directory to continue (run_dir=...).")
+            run_dir = default_run_dir(self.cfg)
         self.run_dir = Path(run_dir)
         # before any data are collected: the directory is claimed, then the checkpoint is read and the config
         # compared (resume), or the directory is checked for an earlier run (a new run never overwrites one without
