@@ -96,9 +96,13 @@ class DensityRatioFit:
         best_loss: the best held-out loss; ``best_step``: the step it was reached at.
         steps_run: gradient steps taken (fewer than asked when early stopping stopped the fit).
         stopped_early: whether ``patience`` evaluations without improvement ended the fit.
-        ratio_collapse: whether the fit failed (:attr:`DensityRatioFitter.ratio_collapse`): no evaluation beat the
-            network's initial state, which is then the one returned, or the best held-out loss is not below that
-            of ŵ ≡ 1. A caller should then not trust ŵ (the trainer flags the run).
+        ratio_collapse: whether the fit failed (:attr:`DensityRatioFitter.ratio_collapse`): it only got worse,
+            so the network's initial state is the one returned. A caller should then not trust ŵ (the trainer flags
+            the run ``ratio_collapse``).
+        ratio_worse_than_uniform: whether the returned network's held-out loss is above that of ŵ ≡ 1 on the same
+            held-out sets (:attr:`DensityRatioFitter.ratio_worse_than_uniform`; the trainer flags the run
+            ``ratio_worse_than_uniform``).
+        verdict: :meth:`DensityRatioFitter.verdict`: both verdicts with their reasons and the held-out losses.
         diagnostics: the loss's figures on the held-out sets with the best network (``"held_out_loss"``,
             ``"density_ratio_behaviour_mean"`` — about 1 for a good fit —, ``"density_ratio_expert_mean"``,
             ``"density_ratio_ess"``, ...).
@@ -114,6 +118,8 @@ class DensityRatioFit:
     diagnostics: dict[str, float]
     history: list[dict] = field(default_factory=list)
     ratio_collapse: bool = False
+    ratio_worse_than_uniform: bool = False
+    verdict: dict = field(default_factory=dict)
 
 
 class DensityRatioFitter:
@@ -139,6 +145,10 @@ class DensityRatioFitter:
             :meth:`evaluate` reports ``"stop"``. Defaults to ``5``.
         min_improvement (float): Defaults to ``1e-6``.
         device (torch.device, optional): where batches go; defaults to the loss's parameters' device.
+
+    What the fit is worth is one rule, :meth:`verdict` (the trainer reads it, and flags the run with its ``"flags"``):
+    ``ratio_collapse`` when the fit only got worse or the weights do not average about 1 over the behaviour data,
+    ``ratio_worse_than_uniform`` when the state it hands on scores worse on the held-out sets than ŵ ≡ 1.
 
     The training sets live in two ``TensorDictReplayBuffer`` (``behaviour_buffer``, ``expert_buffer``); ``sampler``
     draws the paired batches ``TensorDict({"behaviour": ..., "expert": ...})`` and may be replaced by any object with
@@ -229,23 +239,113 @@ class DensityRatioFitter:
             initial = self.loss_module(self.holdout)["loss_density_ratio"].item()
         if math.isfinite(initial):
             self.best["loss"] = initial
-        #: the held-out loss of the network's initial state (the reference :attr:`ratio_collapse` compares with)
+        #: the held-out loss of the network's initial state (the reference the "only got worse" rule compares with)
         self.start_loss = initial
+        #: the held-out loss of ŵ ≡ 1 on the same held-out sets (the reference of ``ratio_worse_than_uniform``)
+        self.uniform_loss = self._uniform_loss()
+
+    #: ŵ's mean over the behaviour data outside [1 / COLLAPSE_FACTOR, COLLAPSE_FACTOR] is a collapsed fit (a density
+    #: ratio averages 1 over the behaviour data).
+    COLLAPSE_FACTOR = 10.0
+    #: A fit whose held-out loss never beat its start's and rose above it by more than this share of |start loss|
+    #: (and at least :attr:`WORSENING_MIN`) only got worse. A fit that merely ties its start (data with little to
+    #: learn: behaviour close to the expert) has not collapsed.
+    WORSENING_SHARE = 0.25
+    WORSENING_MIN = 0.1
+    #: The handed-on state's held-out loss above ŵ ≡ 1's by more than this (float32 rounding of the loss's means) is
+    #: worse than ŵ ≡ 1.
+    UNIFORM_TOLERANCE = 1e-6
+
+    @torch.no_grad()
+    def _uniform_loss(self) -> float:
+        """The loss of ŵ ≡ 1 on the held-out sets, computed by the loss's own divergence (its normalisation penalty is
+        0 there: ŵ ≡ 1 averages 1)."""
+        from torchrl_wbrm.objectives.robust_density_ratio import basu_power_divergence
+
+        loss = self.loss_module
+        dtype = next(iter(loss.parameters())).dtype
+        ones = [torch.ones(self.holdout[side].shape[0], dtype=dtype) for side in ("behaviour", "expert")]
+        return basu_power_divergence(*ones, alpha=loss.alpha, relative_beta=loss.relative_beta,
+                                     non_negative_correction=loss.non_negative_correction).item()
+
+    def verdict(self, weights: torch.Tensor | None = None) -> dict:
+        """What the fit is worth, judged on the held-out sets: the one rule behind the ``ratio_collapse`` and
+        ``ratio_worse_than_uniform`` flags (:class:`~torchrl_wbrm.training.WBRMTrainer` reads it, it does not judge
+        for itself).
+
+        * ``"collapse"``: the fit only got worse (no evaluation beat the held-out loss of the start, so the start is
+          the state handed on, and the held-out loss rose above it by :attr:`WORSENING_SHARE`), or ``weights`` (ŵ over
+          the behaviour data, raw) do not average within [1 / :attr:`COLLAPSE_FACTOR`, :attr:`COLLAPSE_FACTOR`];
+          ``"reasons"`` says which, in words.
+        * ``"worse_than_uniform"``: the best state (the one :meth:`best_network` hands on) has a held-out loss above
+          that of ŵ ≡ 1 (:attr:`uniform_loss`) by more than :attr:`UNIFORM_TOLERANCE`; ``"worse_than_uniform_reason"``
+          says by how much.
+
+        ``"flags"`` lists the flag names raised; the held-out losses (start, ŵ ≡ 1, best, worst) and, with
+        ``weights``, their mean and the shares at the network's bounds are given beside them.
+        """
+        best = self.best
+        start, uniform = self.start_loss, self.uniform_loss
+        worst = best.get("worst")
+        improved = not math.isfinite(start) or best.get("step", 0) != 0
+        out: dict = {}
+        reasons = []
+        if weights is not None:
+            w = weights.detach().double().reshape(-1).cpu()
+            mean = float(w.mean())
+            out["mean_behaviour"] = mean
+            bounds = getattr(self.network, "bounds", None)
+            if bounds is not None:
+                low, high = bounds
+                out["at_lower_bound"] = float((w <= low * 1.001).double().mean())
+                out["at_upper_bound"] = float((w >= high / 1.001).double().mean())
+            if not 1 / self.COLLAPSE_FACTOR <= mean <= self.COLLAPSE_FACTOR:
+                reasons.append(f"the mean of ŵ over D is {mean:.3g}, not about 1 (a density ratio averages 1 over the "
+                               f"behaviour data)")
+        margin = max(self.WORSENING_MIN, self.WORSENING_SHARE * abs(start)) if math.isfinite(start) else None
+        if not improved and worst is not None and worst > start + margin:
+            reasons.append(f"the fit only got worse: its held-out loss rose from {start:.4g} at the start to "
+                           f"{worst:.4g} and never went below the start, so ŵ is the untrained one and the run is "
+                           f"unweighted")
+        handed_on = float(best["loss"])
+        worse = math.isfinite(uniform) and not handed_on <= uniform + self.UNIFORM_TOLERANCE
+        worse_reason = None
+        if worse:
+            worse_reason = (f"handed on ŵ (step {best.get('step', 0)}) whose held-out loss {handed_on:.6g} is above the "
+                            f"{uniform:.6g} of ŵ ≡ 1 on the same held-out sets (weighting by it fits them worse than "
+                            f"not weighting)")
+        out.update({
+            "start_held_out_loss": start,
+            "uniform_held_out_loss": uniform,
+            "best_held_out_loss": handed_on,
+            "best_step": best.get("step"),
+            "worst_held_out_loss": worst,
+            "improved": improved,
+            "collapse": bool(reasons),
+            "reasons": reasons,
+            "worse_than_uniform": worse,
+            "worse_than_uniform_reason": worse_reason,
+            "flags": [name for name, raised in (("ratio_collapse", bool(reasons)),
+                                                ("ratio_worse_than_uniform", worse)) if raised],
+        })
+        return out
 
     @property
     def ratio_collapse(self) -> bool:
-        """Whether the fit failed: no evaluation improved on the held-out loss of the network's initial state (the
-        best state is still the initial one, step 0) although it was evaluated after training steps, or the best
-        held-out loss is not below that of ŵ ≡ 1 (:attr:`initial_loss`). The trainer reads it (``ratio_collapse``
-        beside ``q_blow_up``); :meth:`fit` also returns it in :class:`DensityRatioFit`."""
-        evaluated = self.best.get("evaluations", 0) > 0
-        no_progress = evaluated and self.best.get("step", 0) == 0 and self.num_steps > 0
-        return bool(no_progress or not self.best["loss"] < self.initial_loss)
+        """:meth:`verdict`'s ``"collapse"`` on the held-out sets (without the weights over the behaviour data, which
+        only the caller has): the fit only got worse. :meth:`fit` also returns it in :class:`DensityRatioFit`."""
+        return self.verdict()["collapse"]
+
+    @property
+    def ratio_worse_than_uniform(self) -> bool:
+        """:meth:`verdict`'s ``"worse_than_uniform"``: the state handed on scores worse on the held-out sets than
+        ŵ ≡ 1 (:attr:`uniform_loss`)."""
+        return self.verdict()["worse_than_uniform"]
 
     @property
     def initial_loss(self) -> float:
-        """The loss of ŵ ≡ 1 (where :class:`~torchrl_wbrm.modules.DensityRatioNetwork` starts): ``1 − (1 + 1/α)``
-        for the Basu loss, ``1`` for KL; a fit must end below it."""
+        """The population loss of ŵ ≡ 1 (about where :class:`~torchrl_wbrm.modules.DensityRatioNetwork` starts):
+        ``1 − (1 + 1/α)`` for the Basu loss, ``1`` for KL (:attr:`uniform_loss` is its value on the held-out sets)."""
         alpha = self.loss_module.alpha
         return 1.0 if alpha == "kl" else 1.0 - (1.0 + 1.0 / alpha)
 
@@ -285,6 +385,8 @@ class DensityRatioFitter:
         held_out = self.loss_module(self.holdout)["loss_density_ratio"].item()
         best = self.best
         best["evaluations"] = best.get("evaluations", 0) + 1
+        if math.isfinite(held_out):  # the worst held-out loss seen (the "only got worse" rule of verdict)
+            best["worst"] = held_out if best.get("worst") is None else max(best["worst"], held_out)
         improved = held_out < best["loss"] - self.min_improvement
         if improved:
             best.update(loss=held_out, state=copy.deepcopy(self.network.state_dict()), bad=0, step=step)
@@ -347,10 +449,12 @@ class DensityRatioFitter:
                     stopped = True
                     break
         network = self.best_network()
+        verdict = self.verdict()
         return DensityRatioFit(
             network=network, loss_module=self.loss_module, best_loss=self.best["loss"],
             best_step=self.best.get("step"), steps_run=self.num_steps, stopped_early=stopped,
-            diagnostics=self.held_out_figures(), history=history, ratio_collapse=self.ratio_collapse,
+            diagnostics=self.held_out_figures(), history=history, ratio_collapse=verdict["collapse"],
+            ratio_worse_than_uniform=verdict["worse_than_uniform"], verdict=verdict,
         )
 
 

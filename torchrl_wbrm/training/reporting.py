@@ -15,7 +15,7 @@ def _n(value, spec: str) -> str:
 
 def summarise(results: dict) -> str:
     """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar), and any
-    flag (a diverged run, a Q̂ blow-up, a collapsed stage 1)."""
+    flag (a diverged run, a Q̂ blow-up, a collapsed stage 1, a stage 1 worse than ŵ ≡ 1)."""
     f = results.get("final", {})
     w = results.get("weights", {})
     algo = results.get("algo", "wbrm")
@@ -69,6 +69,11 @@ def summarise(results: dict) -> str:
             "FLAG ratio_collapse: stage 1 failed: " + "; ".join(check.get("reasons", [])) + " (ŵ at its lower bound "
             "on " + _n(100 * check.get("at_lower_bound", 0), ".0f") + "% of D). The weights carry no information; "
             "lower ratio.lr or check the data (ratio.source=none runs the unweighted method on purpose)."
+        )
+    if check.get("worse_than_uniform"):
+        lines.append(
+            f"FLAG ratio_worse_than_uniform: stage 1 {check.get('worse_than_uniform_reason')}. Lower ratio.lr or "
+            "raise ratio.steps, or run ratio.source=none (the unweighted method)."
         )
     below = results.get("behaviour_check") or {}
     if below.get("below"):

@@ -486,53 +486,11 @@ class WBRMTrainer:
         self.weight_stats = ratio_error(w)
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
-    #: ŵ's mean over D outside [1 / COLLAPSE_FACTOR, COLLAPSE_FACTOR] flags a collapsed stage 1 (D is behaviour data,
-    #: over which a density ratio averages 1).
-    COLLAPSE_FACTOR = 10.0
-    #: A fit whose held-out loss never beat its start's and rose above it by more than this share of |start loss|
-    #: (and at least :attr:`WORSENING_MIN`) is a worsening stage 1. A fit that merely ties its start (data with
-    #: little to learn: behaviour close to the expert) is not flagged.
-    WORSENING_SHARE = 0.25
-    WORSENING_MIN = 0.1
-
     def _check_ratio(self, w: torch.Tensor) -> dict:
-        """Stage 1's outcome: ``"collapse"`` (the run's ``ratio_collapse`` flag) when the stored ŵ (raw, before
-        shaping) does not average about 1 over D (:attr:`COLLAPSE_FACTOR`), or when the fit only got worse: no
-        evaluation beat the held-out loss of the start (the fitter then returns the start, ŵ ≈ 1, and the run is
-        unweighted) and the held-out loss rose above it by a clear margin (:attr:`WORSENING_SHARE`). The reasons are
-        given in words; the held-out losses (start, best, worst) beside them."""
-        w = w.detach().double().reshape(-1).cpu()
-        low, high = self.cfg.ratio.bounds
-        mean = float(w.mean())
-        best = self.ratio_best
-        start = getattr(self.ratio_fitter, "start_loss", None)
-        if start is None or not math.isfinite(start):
-            start = getattr(self.ratio_fitter, "initial_loss", None)
-        held_out = [r["held_out_loss"] for r in self.history
-                    if r["stage"] == "ratio" and math.isfinite(r.get("held_out_loss", math.nan))]
-        worst = max(held_out, default=None)
-        improved = start is None or any(loss < start for loss in held_out)
-        reasons = []
-        if not 1 / self.COLLAPSE_FACTOR <= mean <= self.COLLAPSE_FACTOR:
-            reasons.append(f"the mean of ŵ over D is {mean:.3g}, not about 1 (a density ratio averages 1 over the "
-                           f"behaviour data)")
-        margin = None if start is None else max(self.WORSENING_MIN, self.WORSENING_SHARE * abs(start))
-        if not improved and worst is not None and worst > start + margin:
-            reasons.append(f"the fit only got worse: its held-out loss rose from {start:.4g} at the start to "
-                           f"{worst:.4g} and never went below the start, so ŵ is the untrained one and the run is "
-                           f"unweighted")
-        return {
-            "mean_behaviour": mean,
-            "at_lower_bound": float((w <= low * 1.001).double().mean()),
-            "at_upper_bound": float((w >= high / 1.001).double().mean()),
-            "start_held_out_loss": start,
-            "best_held_out_loss": float(best["loss"]),
-            "best_step": best.get("step"),
-            "worst_held_out_loss": worst,
-            "improved": improved,
-            "collapse": bool(reasons),
-            "reasons": reasons,
-        }
+        """Stage 1's outcome, as the fitter judges it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`, the one
+        rule) with the stored ŵ over D (raw, before shaping): its ``"flags"`` (``ratio_collapse``,
+        ``ratio_worse_than_uniform``) are the run's, with the reasons in words and the held-out losses beside them."""
+        return self.ratio_fitter.verdict(w)
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
@@ -711,10 +669,9 @@ class WBRMTrainer:
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
         check = getattr(self, "ratio_check", None)
-        if check is not None:
+        if check is not None:  # the fitter's verdict: ratio_collapse, ratio_worse_than_uniform
             results["ratio"]["check"] = check
-            if check["collapse"]:
-                results["flags"].append("ratio_collapse")
+            results["flags"].extend(check.get("flags", ["ratio_collapse"] if check.get("collapse") else []))
         results["behaviour_check"] = below_behaviour(results["final"], results["data"])
         if results["behaviour_check"]["below"]:
             results["flags"].append("below_behaviour")
