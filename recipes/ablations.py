@@ -13,8 +13,8 @@ Factors (the default is marked and shared by every block, so it runs once):
 - ``behaviour noise``: σ_b = 0.25, 0.5 (default), 1.0, with unweighted BRM beside WBRM (BRM reads no expert data, so
   τ and m cannot move it: its default row stands for both).
 
-Every run uses the budget of ``recipes/paper_tables.py`` (``torchrl_wbrm.training.runs.TABLE_BUDGET``; ``--quick``:
-``TABLE_QUICK_BUDGET``): 2×128 networks, 2,000 Q steps. The
+Every run uses the budget of ``recipes/paper_tables.py`` (``table`` in ``configs/study_budgets.yaml``; ``--quick``:
+``table_quick``): 2×128 networks, 2,000 Q steps. The
 metrics: paired regret against the exact optimum, Q̂ error relative to Q*'s spread and Q̂'s bias on expert samples,
 ŵ's relative L2 error against the exact ratio, the ESS of the weights over D (of about 18,000), and the held-out
 Bellman residual. Outputs in ``--out``: one directory per cell and seed and ``tables.md``.
@@ -25,9 +25,9 @@ import argparse
 import os
 from pathlib import Path
 
-from torchrl_wbrm.training.runs import QUIET, TABLE_BUDGET, TABLE_QUICK_BUDGET
+from torchrl_wbrm.training.runs import study_budget
 
-COMMON = ["env=lqr_exp1", *QUIET]
+COMMON = ["env=lqr_exp1", *study_budget("quiet")]
 DEFAULT = "default"
 BLOCKS = {
     "residual x bootstrap": {
@@ -132,7 +132,7 @@ def main() -> None:
     if not args.report_only:
         from torchrl_wbrm.training.runs import run_cells
 
-        run_cells(cells, range(1 if args.quick else args.seeds), TABLE_QUICK_BUDGET if args.quick else TABLE_BUDGET,
+        run_cells(cells, range(1 if args.quick else args.seeds), study_budget("table_quick" if args.quick else "table"),
                   out, jobs=args.jobs)
     text = tables(out, cells)
     (out / "tables.md").write_text(text + "\n")

@@ -166,10 +166,10 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/convergence_study_quick" if args.quick else "results/convergence_study"))  # a smoke run never mixes with the full one
-    from torchrl_wbrm.training.runs import CONVERGENCE_BUDGET, CONVERGENCE_QUICK_BUDGET, cell_dir, run_cells
+    from torchrl_wbrm.training.runs import cell_dir, run_cells, study_budget
 
     cells, seeds = build_cells(args.quick, args.ratio_sizes, args.q_sizes), range(1 if args.quick else args.seeds)
-    budget = [*CONVERGENCE_BUDGET, *(CONVERGENCE_QUICK_BUDGET if args.quick else [])]
+    budget = [*study_budget("convergence"), *(study_budget("convergence_quick") if args.quick else [])]
     run_cells(cells, seeds, budget, out, jobs=args.jobs, labels=LABELS)
     records = [(cell["block"], cell["n"], seed,
                 json.loads((cell_dir(out, cell, seed, labels=LABELS) / "results.json").read_text()))

@@ -10,8 +10,8 @@
 
 The default envs are the paper's three LQR experiments, ``lqr_nondiag`` (an LQR system not in the paper, with
 coupled dynamics and control: ``configs/env/lqr_nondiag.yaml``) and MountainCar. The table budget is
-``torchrl_wbrm.training.runs.TABLE_BUDGET`` (the same for every algorithm: 2×128 networks and 2,000 steps, evaluated
-every 500 steps for the learning curves, CQL with 4 random actions per state; ``--quick``: ``TABLE_QUICK_BUDGET``).
+``table`` in ``configs/study_budgets.yaml`` (the same for every algorithm: 2×128 networks and 2,000 steps, evaluated
+every 500 steps for the learning curves, CQL with 4 random actions per state; ``--quick``: ``table_quick``).
 Everything else is ``configs/wbrm_offline.yaml``. The algorithms are the registry's (``torchrl_wbrm.algos.ALGOS``).
 
 Then the budget check (``--budget-envs``, default ``lqr_exp1``; ``--budget-steps``, default 1,000 and 4,000): those
@@ -622,11 +622,11 @@ def main() -> None:
         raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (torchrl_wbrm/algos/).")
     if not args.report_only:
         from torchrl_wbrm.training.guards import write_json
-        from torchrl_wbrm.training.runs import TABLE_BUDGET, TABLE_QUICK_BUDGET, run_cells
+        from torchrl_wbrm.training.runs import run_cells, study_budget
 
         os.environ.setdefault("MPLBACKEND", "Agg")
         seeds = range(1 if args.quick else args.seeds)
-        budget = TABLE_QUICK_BUDGET if args.quick else TABLE_BUDGET
+        budget = study_budget("table_quick" if args.quick else "table")
         launch = dict(jobs=args.jobs, labels=LABELS, launcher=args.launcher, launcher_args=args.launcher_args)
         timing_path = out / "wall_seconds.json"
         timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}

@@ -404,9 +404,9 @@ def main() -> None:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, *OTHER_BLOCKS]}")
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/q_accuracy_study_quick" if args.quick else "results/q_accuracy_study"))  # a smoke run never mixes with the full one
-    from torchrl_wbrm.training.runs import Q_ACCURACY_BUDGET, QUICK_BUDGET, run_cells
+    from torchrl_wbrm.training.runs import run_cells, study_budget
 
-    budget = QUICK_BUDGET if args.quick else Q_ACCURACY_BUDGET
+    budget = study_budget("quick" if args.quick else "q_accuracy")
 
     cells = build_cells(args.quick, args.blocks, args.systems, args.factor_systems)
     for cell in cells:

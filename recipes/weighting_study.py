@@ -255,9 +255,9 @@ def main() -> None:
         parser.error(f"--first-seed must be >= 0 and --seeds >= 1, got --first-seed {args.first_seed} "
                      f"--seeds {args.seeds}")
     seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
-    from torchrl_wbrm.training.runs import QUICK_BUDGET, WEIGHTING_BUDGET, run_cells
+    from torchrl_wbrm.training.runs import run_cells, study_budget
 
-    budget = QUICK_BUDGET if args.quick else WEIGHTING_BUDGET
+    budget = study_budget("quick" if args.quick else "weighting")
 
     run_cells(cells, seeds, budget, out, jobs=args.jobs)
     text = tables(out)

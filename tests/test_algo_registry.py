@@ -199,28 +199,36 @@ def test_no_recipe_imports_another_and_the_studies_share_one_runner():
         assert "run_cells(" in text and "joblib" not in text and "subprocess" not in text, study
 
 
-def test_the_studies_budgets_are_the_packages():
-    """The budgets moved from the recipes into torchrl_wbrm.training.runs with their values."""
-    from torchrl_wbrm.training import runs
+def test_the_studies_budgets_are_read_from_the_yaml():
+    """``configs/study_budgets.yaml`` holds the studies' budgets; an alias splices another budget in at its place."""
+    from torchrl_wbrm.training.runs import study_budget
 
-    assert runs.TABLE_BUDGET == ["q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000",
-                                 "q.eval_every=500", "eval.train_episodes=200", "baselines.cql.num_random=4"]
-    assert runs.QUICK_BUDGET[-3:] == runs.QUIET == ["logger=none", "plots=false", "checkpoint_every=0"]
-    assert runs.WEIGHTING_BUDGET == ["ratio.steps=1000", "q.steps=2000", "q.eval_every=2000", "eval.episodes=1000",
-                                     "eval.q_samples=5000", *runs.QUIET]
-    assert runs.Q_ACCURACY_BUDGET == ["q.eval_every=1500", "eval.episodes=1000", "eval.q_samples=5000", *runs.QUIET]
-    for budget in (runs.TABLE_BUDGET, runs.TABLE_QUICK_BUDGET, runs.WEIGHTING_BUDGET, runs.CONVERGENCE_BUDGET,
-                   runs.CONVERGENCE_QUICK_BUDGET, runs.QUICK_BUDGET, runs.Q_ACCURACY_BUDGET):
+    assert study_budget("table") == ["q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000",
+                                     "q.eval_every=500", "eval.train_episodes=200", "baselines.cql.num_random=4"]
+    quiet = study_budget("quiet")
+    assert quiet == ["logger=none", "plots=false", "checkpoint_every=0"] == study_budget("quick")[-3:]
+    assert study_budget("weighting") == ["ratio.steps=1000", "q.steps=2000", "q.eval_every=2000", "eval.episodes=1000",
+                                         "eval.q_samples=5000", *quiet]
+    assert study_budget("q_accuracy") == ["q.eval_every=1500", "eval.episodes=1000", "eval.q_samples=5000", *quiet]
+    assert study_budget("convergence")[:3] == quiet and "ratio.clip=null" in study_budget("convergence")
+    names = OmegaConf.load(CONFIG_DIR / "study_budgets.yaml").keys()
+    assert sorted(names) == ["convergence", "convergence_quick", "q_accuracy", "quick", "quiet", "table",
+                             "table_quick", "weighting"]
+    for name in names:
+        budget = study_budget(name)
+        assert budget and all(isinstance(o, str) and "=" in o for o in budget), name
         _compose(*budget)  # each composes with the recipe's config
+    with pytest.raises(ValueError, match="no study budget 'tables'.*quick, table"):
+        study_budget("tables")
 
 
 def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path):
     """``run_cells(..., launcher=...)``: one Hydra multirun per cell (here Hydra's joblib launcher), each run in its
     cell directory with the cell's labels in its results, as a local run writes them; finished runs are skipped."""
-    from torchrl_wbrm.training.runs import QUICK_BUDGET, cell_dir, run_cells
+    from torchrl_wbrm.training.runs import cell_dir, run_cells, study_budget
 
     cell = {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "brm", "overrides": ["algo=brm"]}
-    budget = [*QUICK_BUDGET, "q.steps=4", "q.eval_every=4", "eval.episodes=10", "eval.train_episodes=10"]
+    budget = [*study_budget("quick"), "q.steps=4", "q.eval_every=4", "eval.episodes=10", "eval.train_episodes=10"]
     run_cells([cell], [0, 1], budget, tmp_path, launcher="joblib", launcher_args=["hydra.launcher.n_jobs=1"])
     for seed in (0, 1):
         results = json.loads((cell_dir(tmp_path, cell, seed) / "results.json").read_text())

@@ -50,7 +50,7 @@ def test_paper_tables_quick(tmp_path):
     assert len(list((tmp_path / "data_cache").iterdir())) == 2  # one collection per env and seed, shared
     assert (tmp_path / "paper_tables.png").is_file() and (tmp_path / "wall_seconds.json").is_file()
     assert "### Cost" in tables and "### Budget check" in tables
-    # the learning curves: two Q evaluations per quick run (TABLE_QUICK_BUDGET), a row per (env, algorithm)
+    # the learning curves: two Q evaluations per quick run (the table_quick study budget), a row per (env, algorithm)
     assert (tmp_path / "learning_curves.png").is_file() and "### Budget and convergence" in tables
     assert "| lqr_exp1 | dqn | regret | 10 | 2 |" in tables and "| mountain_car | dqn | return | 10 | 2 |" in tables
 

@@ -1,9 +1,10 @@
-"""The studies' one job runner and their budgets: run the main recipe's config in-process from Hydra overrides.
+"""The studies' one job runner: run the main recipe's config in-process from Hydra overrides.
 
 A study (``recipes/paper_tables.py``, ``ablations.py``, ``weighting_study.py``, ``convergence_study.py``,
 ``q_accuracy_study.py``) is a list of *cells*, each a dict of labels and ``"overrides"``; :func:`run_cells` runs every
-(cell, seed) with a budget from here (the overrides that come first), locally in parallel processes or through a Hydra
-launcher (Slurm, Ray), and skips the runs whose ``results.json`` exists, so a study resumes where it stopped.
+(cell, seed) with a budget (the overrides that come first; :func:`study_budget` reads the studies' budgets from
+``configs/study_budgets.yaml``), locally in parallel processes or through a Hydra launcher (Slurm, Ray), and skips
+the runs whose ``results.json`` exists, so a study resumes where it stopped.
 """
 from __future__ import annotations
 
@@ -17,88 +18,40 @@ from pathlib import Path
 from torchrl_wbrm.configs import CONFIG_DIR
 
 __all__ = [
-    "CONVERGENCE_BUDGET",
-    "CONVERGENCE_QUICK_BUDGET",
     "LABELS",
-    "Q_ACCURACY_BUDGET",
-    "QUICK_BUDGET",
-    "QUIET",
-    "TABLE_BUDGET",
-    "TABLE_QUICK_BUDGET",
-    "WEIGHTING_BUDGET",
     "cell_dir",
     "compose_recipe_config",
     "finished_results",
     "run_cell",
     "run_cells",
     "run_overrides",
+    "study_budget",
 ]
-
-#: What no study run writes: no logger, no plots, a checkpoint only at the end of each stage.
-QUIET = ["logger=none", "plots=false", "checkpoint_every=0"]
-
-#: The studies' smoke budget (``--quick``, run in CI): tiny LQR data, networks, budgets and evaluations.
-QUICK_BUDGET = [
-    "env.lqr_data.behaviour_episodes=60",
-    "env.lqr_data.expert_episodes=30",
-    "env.lqr_data.parallel_envs=30",
-    "ratio.steps=20",
-    "ratio.eval_every=10",
-    "q.steps=20",
-    "q.eval_every=20",
-    "q.num_cells=[16,16]",
-    "q.actor_num_cells=[16,16]",
-    "eval.episodes=50",
-    "eval.q_samples=300",
-    *QUIET,
-]
-
-#: The budget of the paper's tables and of the ablations (the same for every algorithm, to fit the whole grid of
-#: ``recipes/paper_tables.py`` in an hour on 2 cores): 2×128 networks and 2,000 steps (the recipe's default is 2×256
-#: and 3,000), CQL with 4 random actions per state (torchrl's default 10 made CQL alone take half the hour), evaluated
-#: every 500 steps (4 points per learning curve; evaluations run on a forked generator, so training is unchanged).
-TABLE_BUDGET = [
-    "q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000", "q.eval_every=500",
-    "eval.train_episodes=200", "baselines.cql.num_random=4",
-]
-
-#: Their smoke version (``--quick``): tiny LQR and MountainCar data, 10 steps each stage (Q evaluated at 5 and 10:
-#: two points per learning curve), 16-unit networks.
-TABLE_QUICK_BUDGET = [
-    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
-    "env.mountain_car_data.expert_transitions=300", "env.mountain_car_data.behaviour_transitions=1200",
-    "ratio.steps=10", "ratio.eval_every=5", "ratio.batch_size=64", "q.steps=10", "q.eval_every=5",
-    "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "eval.episodes=20", "eval.train_episodes=1",
-    "eval.q_samples=200",
-]
-
-#: ``recipes/q_accuracy_study.py``: the recipe's own training budget, evaluated every 1,500 steps (the histories show
-#: the learning curves) on 1,000 episodes and 5,000 Q samples.
-Q_ACCURACY_BUDGET = ["q.eval_every=1500", "eval.episodes=1000", "eval.q_samples=5000", *QUIET]
-
-#: ``recipes/weighting_study.py``: 1,000 ratio steps, 2,000 Q steps, 1,000 evaluation episodes.
-WEIGHTING_BUDGET = [
-    "ratio.steps=1000",
-    "q.steps=2000",
-    "q.eval_every=2000",
-    "eval.episodes=1000",
-    "eval.q_samples=5000",
-    *QUIET,
-]
-
-#: ``recipes/convergence_study.py``: the evaluation sizes and the untempered, unclipped stored ratio (each cell sets
-#: its own data sizes and step budgets).
-CONVERGENCE_BUDGET = [*QUIET, "eval.episodes=200", "eval.q_samples=5000", "eval.train_episodes=50", "ratio.mix=0.0",
-                      "ratio.clip=null"]
-
-#: Its smoke version (``--quick``): 16-unit networks, small evaluations.
-CONVERGENCE_QUICK_BUDGET = ["q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "ratio.num_cells=[16,16]",
-                            "eval.q_samples=300", "eval.episodes=50"]
 
 #: The labels of a cell that name its run directory (:func:`cell_dir`) and go into its results under ``"study"``.
 LABELS = ("block", "env", "setting", "method")
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def study_budget(name: str) -> list[str]:
+    """The overrides of the study budget ``name`` in ``configs/study_budgets.yaml`` (``quiet``, ``quick``, ``table``,
+    ``table_quick``, ``q_accuracy``, ``weighting``, ``convergence``, ``convergence_quick``), another budget's spliced in
+    where the file names it by alias::
+
+        >>> study_budget("weighting")[-3:] == study_budget("quiet")
+        True
+    """
+    from omegaconf import OmegaConf
+
+    budgets = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "study_budgets.yaml"))
+    if name not in budgets:
+        raise ValueError(f"no study budget {name!r} in {CONFIG_DIR / 'study_budgets.yaml'}; "
+                         f"the budgets are: {', '.join(budgets)}")
+    flat = []
+    for entry in budgets[name]:
+        flat.extend(entry if isinstance(entry, list) else [entry])
+    return flat
 
 
 def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline"):
