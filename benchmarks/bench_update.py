@@ -1,7 +1,6 @@
 """The WBRM updates against hand-written plain-PyTorch twins of the same networks, timed interleaved.
 
     python benchmarks/bench_update.py                 # eager, one torch thread
-    python benchmarks/bench_update.py --compile       # also q.compile=true (compile time printed separately)
     python benchmarks/bench_update.py --device cuda
 
 Each comparison builds the project's update exactly as the trainer does (``build_algo`` on a default
@@ -26,8 +25,6 @@ import argparse
 import copy
 import os
 import sys
-import tempfile
-import time
 
 import torch
 
@@ -126,7 +123,7 @@ def twin_tensors(td: TensorDict):
             td["density_ratio"])
 
 
-def q_comparisons(cfg, device, iterations, rounds, compiled: bool):
+def q_comparisons(cfg, device, iterations, rounds):
     data = lqr_like_data(18_000, device)
     algo = project_q(cfg, device)
     twin = TwinQ(algo, 0.9, cfg.q.target_tau, cfg.q.lr, cfg.q.actor_lr, cfg.q.actor_delay)
@@ -164,21 +161,16 @@ def q_comparisons(cfg, device, iterations, rounds, compiled: bool):
         return twin.full_step(tuple(t[idx] for t in plain), counter["twin"])
 
     sync = torch.cuda.synchronize if device.type == "cuda" else None
-    label = " (compiled)" if compiled else ""
-    r = compare({"twin (plain torch)": twin_critic, f"WeightedBellmanLoss{label}": ours_critic},
+    r = compare({"twin (plain torch)": twin_critic, "WeightedBellmanLoss": ours_critic},
                 yardstick="twin (plain torch)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("critic step: value_loss + backward + Adam + SoftUpdate, batch 256, 2x256 networks", r,
                      yardstick="twin (plain torch)")
-    r2 = compare({"twin (plain torch)": twin_full, f"algo.step{label}": ours_full},
+    r2 = compare({"twin (plain torch)": twin_full, "algo.step": ours_full},
                  yardstick="twin (plain torch)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("full step: Q, actor every 2nd step, targets (fixed batch)", r2, yardstick="twin (plain torch)")
-    r3 = compare({"twin (randint indexing)": twin_sampled, f"BufferBatches.sample + algo.step{label}": ours_sampled},
+    r3 = compare({"twin (randint indexing)": twin_sampled, "BufferBatches.sample + algo.step": ours_sampled},
                  yardstick="twin (randint indexing)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("full step with sampling from the replay buffer", r3, yardstick="twin (randint indexing)")
-    compiled_losses = getattr(algo.step, "compiled", None)
-    if compiled and compiled_losses is not None:
-        print(f"(compilation, the first value and actor steps included: {compiled_losses.compile_seconds:.1f} s; "
-              "not in the timings above, which start after warm-up)")
     return {"critic": r, "full": r2, "full_sampled": r3}
 
 
@@ -199,8 +191,7 @@ def _critic_step_fallback(algo, cfg, batch):
             from torchrl.objectives import SoftUpdate
 
         algo._bench_updater = SoftUpdate(loss, tau=cfg.q.target_tau)
-    losses = getattr(algo.step, "compiled", None) or loss  # q.compile: the compiled losses
-    value, _ = losses.value_loss(batch)
+    value, _ = loss.value_loss(batch)
     _descend(value, algo.optimisers["value"], cfg.q.grad_clip)
     algo._bench_updater.step()
     return value.detach()
@@ -264,7 +255,6 @@ def main(argv=None):
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--iterations", type=int, default=50)
     parser.add_argument("--rounds", type=int, default=7)
-    parser.add_argument("--compile", action="store_true", help="also time q.compile=true")
     parser.add_argument("--only", choices=("q", "ratio"), default=None)
     args = parser.parse_args(argv)
     single_thread()
@@ -273,16 +263,9 @@ def main(argv=None):
     cfg = WBRMConfig()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {device}")
     if args.only in (None, "q"):
-        q_comparisons(cfg, device, args.iterations, args.rounds, compiled=False)
+        q_comparisons(cfg, device, args.iterations, args.rounds)
     if args.only in (None, "ratio"):
         ratio_comparisons(cfg, device, args.iterations, args.rounds)
-    if args.compile:
-        with tempfile.TemporaryDirectory() as cache:
-            os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", cache)
-            cfg.q.compile = True
-            t0 = time.perf_counter()
-            q_comparisons(cfg, device, args.iterations, args.rounds, compiled=True)
-            print(f"(compiled run including compilation: {time.perf_counter() - t0:.1f} s)")
 
 
 if __name__ == "__main__":

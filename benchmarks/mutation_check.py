@@ -6,8 +6,8 @@
     python benchmarks/mutation_check.py --list
     python benchmarks/mutation_check.py --dry-run       # apply each mutation to a copy and count the lines it changes
 
-For each breakage in :data:`MUTATIONS` it copies the working tree to a temporary directory, applies the one-line
-change there (every copy of the line, where the same code exists on two paths, e.g. a fast and a TensorDict path),
+For each breakage in :data:`MUTATIONS` it copies the working tree to a temporary directory, applies the one change
+there (each equation and each step is implemented once, so a mutation replaces a fragment found exactly once),
 runs the chosen tests in the copy (the copy's package is imported: ``PYTHONPATH`` and the working directory point at
 it, which the script checks) and reports *caught* (the tests fail) or *NOT CAUGHT*. First it runs every subset on an
 unmodified copy: a subset that fails without a mutation would "catch" anything, so the check stops there.
@@ -36,14 +36,14 @@ IGNORE = shutil.ignore_patterns(
 
 @dataclass
 class Mutation:
-    """One breakage: in ``path``, each ``(old, new)`` replaces every occurrence of the line fragment ``old``."""
+    """One breakage: in ``path``, the fragment ``old``, found there exactly once, becomes ``new``."""
 
     name: str
     what: str
     path: str
-    edits: list[tuple[str, str]]
+    old: str
+    new: str
     tests: list[str]
-    min_lines: int = 1  # how many lines at least must change (a fragment that vanished is an error, not a pass)
     changed: int = field(default=0, init=False)
 
 
@@ -54,77 +54,75 @@ MUTATIONS = [
     Mutation(
         "drop_weights", "stage 2 ignores ŵ: the residual is weighted by ones",
         "torchrl_wbrm/objectives/weighted_bellman.py",
-        [("            weight,\n            residual=self.residual,", "            torch.ones_like(weight),\n            residual=self.residual,")],
+        "            weight,\n            residual=self.residual,", "            torch.ones_like(weight),\n            residual=self.residual,",
         ["tests/test_weighted_bellman.py"],
     ),
     Mutation(
         "ignore_target", "the bootstrap reads the online Q even with delay_value=True",
         "torchrl_wbrm/objectives/weighted_bellman.py",
-        [("params = self.target_value_network_params if self.delay_value else self.value_network_params",
-          "params = self.value_network_params")],
+        "params = self.target_value_network_params if self.delay_value else self.value_network_params",
+        "params = self.value_network_params",
         ["tests/test_weighted_bellman.py", "tests/test_mabo.py"],
     ),
     Mutation(
         "flip_gamma", "the trainer discounts with −γ",
         "torchrl_wbrm/training/trainer.py",
-        [("self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = -self.task.gamma(self.cfg.q.gamma)")],
+        "self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = -self.task.gamma(self.cfg.q.gamma)",
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(
         "gamma_half", "the trainer discounts with γ = 0.5 instead of the env's 0.9",
         "torchrl_wbrm/training/trainer.py",
-        [("self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = 0.5")],
+        "self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = 0.5",
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(
         "skip_restore", "stage 1 keeps its last state, not the best held-out one",
         "torchrl_wbrm/ratio/fitting.py",
-        [('self.network.load_state_dict(self.best["state"])', "pass")],
+        'self.network.load_state_dict(self.best["state"])', "pass",
         ["tests/test_training.py::test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state"],
     ),
     Mutation(
         "swap_ratio", "the exact ratio is behaviour over expert",
         "torchrl_wbrm/policies/lqr.py",
-        [("_base(env), e.gain, e.noise_std, b.gain, b.noise_std,", "_base(env), b.gain, b.noise_std, e.gain, e.noise_std,")],
+        "_base(env), e.gain, e.noise_std, b.gain, b.noise_std,", "_base(env), b.gain, b.noise_std, e.gain, e.noise_std,",
         ["tests/test_training.py::test_exact_source_stores_the_true_ratio_expert_over_behaviour"],
     ),
     Mutation(
         "skip_optimiser_step", "no optimiser step in the algos' shared descent step",
         "torchrl_wbrm/algos/base.py",
-        [("    loss.backward()\n    if grad_clip:", "    loss.backward()\n    return\n    if grad_clip:")],
+        "    loss.backward()\n    if grad_clip:", "    loss.backward()\n    return\n    if grad_clip:",
         [f"{LEARNING}[wbrm]", f"{LEARNING}[brm]"],
     ),
     Mutation(
         "break_done_mask", "bootstrap through terminations (the mask 1 − terminated is dropped)",
-        "torchrl_wbrm/objectives/weighted_bellman.py",
-        [("terminated=terminated,", "terminated=torch.zeros_like(terminated),"),
-         ('"terminated": self.tensor_keys.terminated,', '"terminated": "never_terminated",'),
-         ("terminated=self.tensor_keys.terminated,", 'terminated="never_terminated",')],
+        "torchrl_wbrm/objectives/functional.py",
+        "return reward + gamma * (~terminated).int() * next_value", "return reward + gamma * next_value",
         ["tests/test_weighted_bellman.py"],
     ),
     # ---------------------------------------------------------------- added here
     Mutation(
         "store_ones", "the trainer stores w ≡ 1 over D instead of the stage-1 ŵ",
         "torchrl_wbrm/ratio/storing.py",
-        [("        target.set(key, w)\n", "        target.set(key, torch.ones_like(w))\n")],
+        "        target.set(key, w)\n", "        target.set(key, torch.ones_like(w))\n",
         ["tests/test_training.py"],
     ),
     Mutation(
         "skip_ratio_step", "stage 1 never steps its optimiser",
         "torchrl_wbrm/ratio/fitting.py",
-        [("        self.optimizer.step()\n", "        pass\n")],
+        "        self.optimizer.step()\n", "        pass\n",
         ["tests/test_training.py::test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state"],
     ),
     Mutation(
         "frozen_target", "the Bellman family never updates its target (SoftUpdate skipped)",
         "torchrl_wbrm/algos/base.py",
-        [("            if updater is not None and not every_step:", "            if False:")],
+        "            if updater is not None and not every_step:", "            if False:",
         [f"{LEARNING}[wbrm]", f"{Q_LEARNING}[wbrm]", f"{LEARNING}[brm]", f"{Q_LEARNING}[brm]"],
     ),
     Mutation(
         "no_actor_step", "the actor (the max over actions) is never trained",
         "torchrl_wbrm/algos/base.py",
-        [("        if i % qc.actor_delay == 0 and loss.has_actor:", "        if False:")],
+        "        if i % qc.actor_delay == 0 and loss.has_actor:", "        if False:",
         [f"{LEARNING}[wbrm]", f"{LEARNING}[brm]"],
     ),
 ]
@@ -138,17 +136,14 @@ def copy_tree(dest: Path) -> Path:
 def apply(mutation: Mutation, tree: Path) -> None:
     path = tree / mutation.path
     text = path.read_text()
-    changed = 0
-    for old, new in mutation.edits:
-        n = text.count(old)
-        text = text.replace(old, new)
-        changed += n
-    if changed < mutation.min_lines:
+    found = text.count(mutation.old)
+    if found != 1:
         raise SystemExit(
-            f"mutation {mutation.name}: none of its fragments is in {mutation.path} any more; update MUTATIONS."
+            f"mutation {mutation.name}: its fragment is in {mutation.path} {found} times, not once; update MUTATIONS "
+            "(or implement the mutated code in one place)."
         )
-    mutation.changed = changed
-    path.write_text(text)
+    mutation.changed = len(mutation.old.rstrip("\n").splitlines())
+    path.write_text(text.replace(mutation.old, mutation.new))
 
 
 def run_tests(tree: Path, tests: list[str], *, full: bool, timeout: int) -> tuple[int, str, float]:
@@ -211,7 +206,7 @@ def main() -> int:
                 tree = scratch / m.name
                 shutil.copytree(clean, tree, symlinks=True)
                 apply(m, tree)
-                print(f"{m.name:20s} {m.changed} line(s) changed in {m.path}")
+                print(f"{m.name:20s} one place, {m.changed} line(s), changed in {m.path}")
                 shutil.rmtree(tree)
             return 0
         if not args.no_baseline:

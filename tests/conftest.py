@@ -18,7 +18,6 @@ SLOWEST_FILES = (
     "test_recipes.py",  # 105 s
     "test_studies_quick.py",  # 195 s under load (paper_tables --quick runs every registered algorithm: 129 s)
     "test_first_hour.py",  # 90 s under load (the README commands as a user types them)
-    "test_speed_compile.py",  # 91 s
     "test_examples.py",  # 56 s
     "test_launchers.py",  # 44 s
     "test_minari.py",  # 43 s

@@ -15,7 +15,7 @@ from torchrl_wbrm.data import make_replay_buffer
 from torchrl_wbrm.data.datasets import PairedSampler
 from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
 from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
-from torchrl_wbrm.objectives._fast import ForeachSoftUpdate, FunctionalCall
+from torchrl_wbrm.objectives._fast import ForeachSoftUpdate, NetworkCall
 from torchrl_wbrm.training.algos import adam_options
 from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 
@@ -59,7 +59,8 @@ def _grads(loss):
 ])
 def test_weighted_bellman_fast_path_equals_the_tensordict_path(kwargs):
     fast, slow = _pair(**kwargs)
-    assert fast._fast() is not None and slow._fast() is None
+    for name in ("value_network", "actor_network"):
+        assert fast._network_call(name).direct and not slow._network_call(name).direct
     if fast.delay_value:
         for loss in (fast, slow):
             SoftUpdate(loss, tau=0.1)
@@ -116,18 +117,23 @@ def test_fast_path_is_skipped_for_networks_it_cannot_call_on_tensors():
     safe_actor = make_deterministic_actor(3, SPEC, num_cells=(8,))
     safe_actor.safe = True
     loss = WeightedBellmanLoss(q, actor_network=safe_actor)
-    assert loss._fast() is None
+    assert loss._network_call("value_network").direct and not loss._network_call("actor_network").direct
     hooked = make_q_network(3, 2, initial_bias=0.0, num_cells=(8,))
     hooked.register_forward_hook(lambda *args: None)
-    assert FunctionalCall.build(hooked, WeightedBellmanLoss(hooked, action_spec=SPEC).value_network_params) is None
+    hooked_loss = WeightedBellmanLoss(hooked, action_spec=SPEC)
+    assert not NetworkCall(hooked, hooked_loss.value_network_params, "state_action_value").direct
+    data = _data()
+    out = loss(data)  # the TensorDict call for the safe actor, the tensor call for Q: one loss
+    assert torch.isfinite(out["loss_value"]) and torch.isfinite(out["loss_actor"])
 
 
 def test_fast_call_restores_the_meta_module_even_on_error():
     fast, _ = _pair()
     net = fast.value_network
     before = {n: p for n, p in net.named_parameters()}
-    with pytest.raises(RuntimeError):
-        fast._fast()[0](fast.value_network_params, torch.zeros(4, 1), torch.zeros(4, 1))  # wrong width
+    with pytest.raises(RuntimeError):  # wrong width
+        fast._network_call("value_network")(fast.value_network_params,
+                                            {"observation": torch.zeros(4, 1), "action": torch.zeros(4, 1)}, (4,))
     after = dict(net.named_parameters())
     assert after.keys() == before.keys() and all(after[n] is before[n] for n in before)
 
@@ -139,7 +145,7 @@ def test_ratio_fast_path_equals_the_tensordict_path(kwargs):
     fast = RobustDensityRatioLoss(DensityRatioNetwork(3, 2, num_cells=(16,)), **kwargs)
     slow = copy.deepcopy(fast)
     slow.fast_path = False
-    assert fast._fast() is not None and slow._fast() is None
+    assert fast._network_call().direct and not slow._network_call().direct
     d = _data(32)
     batch = TensorDict({"behaviour": d.select("observation", "action"),
                         "expert": _data(16, seed=1).select("observation", "action")}, [])
@@ -316,3 +322,69 @@ def test_trainer_divergence_check_on_cpu_is_first_non_finite(tmp_path):
     assert trainer._non_finite_figure({"loss": torch.tensor(1.0)}, read=False) is None
     name, value = trainer._non_finite_figure({"a": torch.tensor(1.0), "loss": torch.tensor(float("inf"))}, read=False)
     assert name == "loss" and value == float("inf")
+
+
+def _sequential_pair():
+    """A loss whose Q is a TensorDictSequential: NetworkCall makes the TensorDict call for it."""
+    from tensordict.nn import TensorDictSequential
+
+    torch.manual_seed(0)
+    q = TensorDictSequential(make_q_network(3, 2, initial_bias=0.0, num_cells=(16, 16), activation="SiLU"))
+    loss = WeightedBellmanLoss(q, actor_network=make_deterministic_actor(3, SPEC, num_cells=(16,)))
+    loss.make_value_estimator(gamma=0.9)
+    return loss
+
+
+@pytest.mark.parametrize("path", ["tensor", "tensordict", "sequential"])
+def test_priority_weight_and_input_checks_hold_on_every_network_call(path):
+    from torchrl_wbrm.objectives._utils import NonFiniteError
+
+    if path == "sequential":
+        loss = _sequential_pair()
+        assert not loss._network_call("value_network").direct
+    else:
+        loss, slow = _pair()
+        loss = loss if path == "tensor" else slow
+        assert loss._network_call("value_network").direct == (path == "tensor")
+    data = _data()
+    p = torch.rand(64, generator=torch.Generator().manual_seed(2)) + 0.5
+    q, y = loss.bellman_error(data)
+    w = data["density_ratio"].squeeze(-1)
+    with_p, figures = loss.value_loss(data.clone().set("priority_weight", p))
+    torch.testing.assert_close(with_p, (w * p * (q - y).pow(2)).mean())
+    torch.testing.assert_close(figures["weight_mean"], (w * p).mean())
+    actor_loss = WeightedBellmanLoss.actor_loss  # the weighted actor loss reads the same product
+    loss.weight_actor_loss = True
+    weighted_actor, _ = actor_loss(loss, data.clone().set("priority_weight", p))
+    loss.weight_actor_loss = False
+    plain_actor, _ = actor_loss(loss, data.clone().set("priority_weight", p))
+    assert not torch.equal(weighted_actor, plain_actor)
+    bad = data.clone().set("priority_weight", -p)
+    with pytest.raises(ValueError, match=r"Entry 'priority_weight' must be finite and non-negative"):
+        loss.value_loss(bad)
+    bad = data.clone()
+    bad["observation"][0, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match=r"Entry 'observation' holds 1 non-finite"):
+        loss.value_loss(bad)
+    bad = data.clone()
+    bad["density_ratio"][1] = -1.0
+    with pytest.raises(ValueError, match=r"Entry 'density_ratio' must be finite and non-negative"):
+        loss(bad)
+    wide = data.clone()
+    wide["observation"] = torch.randn(64, 4)
+    wide["next", "observation"] = torch.randn(64, 4)
+    with pytest.raises(ValueError, match=r"reads 5 input feature\(s\), but the batch gives 6"):
+        loss.value_loss(wide)
+
+
+def test_q_compile_is_not_a_setting():
+    """The update has one eager path: ``q.compile`` is refused by the schema, from the command line and in Python."""
+    from hydra.errors import ConfigCompositionException
+
+    from references import compose_recipe
+    from torchrl_wbrm.training.config import QConfig
+
+    with pytest.raises(ConfigCompositionException, match=r"q\.compile"):
+        compose_recipe("q.compile=true")
+    with pytest.raises(TypeError, match=r"compile"):
+        QConfig(compile=True)

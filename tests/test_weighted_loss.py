@@ -60,14 +60,20 @@ def _action_values():
                          out_keys=["action_value"])
 
 
-#: name -> (builder(reduction), discrete data?, draws random numbers in forward?)
+def _kw(reduction):
+    """``reduction`` (and ``scalar_output_mode="exclude"``, which torchrl wants beside ``"none"``), or nothing: the
+    loss as a user builds it by default."""
+    return {} if reduction is None else {"reduction": reduction, "scalar_output_mode": "exclude"}
+
+
+#: name -> (builder(reduction; None: torchrl's defaults), discrete data?, draws random numbers in forward?)
 LOSSES = {
-    "IQLLoss": (lambda r: tro.IQLLoss(_stochastic_actor(), _q(), _v(), reduction=r, scalar_output_mode="exclude"),
+    "IQLLoss": (lambda r: tro.IQLLoss(_stochastic_actor(), _q(), _v(), **_kw(r)),
                 False, False),
-    "CQLLoss": (lambda r: tro.CQLLoss(_stochastic_actor(), _q(), reduction=r, scalar_output_mode="exclude"),
+    "CQLLoss": (lambda r: tro.CQLLoss(_stochastic_actor(), _q(), **_kw(r)),
                 False, True),
     "DiscreteCQLLoss": (lambda r: tro.DiscreteCQLLoss(_discrete_q(), action_space="one-hot", reduction=r), True, False),
-    "SACLoss": (lambda r: tro.SACLoss(_stochastic_actor(), _q(), reduction=r, scalar_output_mode="exclude"),
+    "SACLoss": (lambda r: tro.SACLoss(_stochastic_actor(), _q(), **_kw(r)),
                 False, True),
     "TD3Loss": (lambda r: tro.TD3Loss(_actor(), _q(), action_spec=SPEC, reduction=r), False, True),
     "TD3BCLoss": (lambda r: tro.TD3BCLoss(_actor(), _q(), action_spec=SPEC, reduction=r), False, True),
@@ -75,7 +81,7 @@ LOSSES = {
     "DQNLoss": (lambda r: tro.DQNLoss(_discrete_q(), action_space="one-hot", reduction=r), True, False),
     "BCLoss": (lambda r: tro.BCLoss(_actor(), loss_function="l2", reduction=r), False, False),
     "DiscreteSACLoss": (lambda r: tro.DiscreteSACLoss(_categorical_actor(), _action_values(), num_actions=NUM_ACTIONS,
-                                                      reduction=r, scalar_output_mode="exclude"), True, False),
+                                                      **_kw(r)), True, False),
 }
 # Not here: DiscreteIQLLoss (torchrl 0.14.1's forward fails on a one-hot categorical actor), CQLLoss with
 # with_lagrange=True (refused, below), and the on-policy / model-based losses.
@@ -124,47 +130,54 @@ def name(request):
     return request.param
 
 
-def test_every_loss_has_terms(name):
-    out = _call(WeightedLoss(_build(name, "none")), _data(name).set("density_ratio", torch.ones(B)))
+@pytest.fixture(params=["none", None], ids=["built_none", "built_default"])
+def how(request):
+    """How the wrapped loss is built: with ``reduction="none"``, or with torchrl's defaults (``"mean"``), which
+    WeightedLoss switches to per-sample terms itself."""
+    return request.param
+
+
+def test_every_loss_has_terms(name, how):
+    out = _call(WeightedLoss(_build(name, how)), _data(name).set("density_ratio", torch.ones(B)))
     assert _terms(out) and all(v.shape == () for v in _terms(out).values()), out
 
 
-def test_constant_weights_give_the_unweighted_loss(name):
+def test_constant_weights_give_the_unweighted_loss(name, how):
     td = _data(name)
     plain = _terms(_call(_build(name, "mean"), td))
-    weighted = _terms(_call(WeightedLoss(_build(name, "none")), td.set("density_ratio", torch.full((B,), 3.0))))
+    weighted = _terms(_call(WeightedLoss(_build(name, how)), td.set("density_ratio", torch.full((B,), 3.0))))
     assert plain.keys() == weighted.keys()
     for key in plain:
         torch.testing.assert_close(weighted[key], plain[key], rtol=1e-5, atol=1e-6, msg=key)
 
 
-def test_doubling_every_weight_changes_nothing(name):
+def test_doubling_every_weight_changes_nothing(name, how):
     w = torch.rand(B, generator=torch.Generator().manual_seed(3)) + 0.1
-    loss = WeightedLoss(_build(name, "none"))
+    loss = WeightedLoss(_build(name, how))
     one = _terms(_call(loss, _data(name).set("density_ratio", w)))
     two = _terms(_call(loss, _data(name).set("density_ratio", 2 * w)))
     for key in one:
         torch.testing.assert_close(two[key], one[key], rtol=1e-5, atol=1e-6, msg=key)
 
 
-def test_weighted_mean_of_the_per_sample_terms(name):
+def test_weighted_mean_of_the_per_sample_terms(name, how):
     """Σ wᵢ lᵢ / Σ wᵢ, with lᵢ the unwrapped loss's reduction="none" terms under the same random state."""
     w = torch.rand(B, 1, generator=torch.Generator().manual_seed(4))
     td = _data(name)
     per_sample = _terms(_call(_build(name, "none"), td))
-    weighted = _terms(_call(WeightedLoss(_build(name, "none")), td.set("density_ratio", w)))
+    weighted = _terms(_call(WeightedLoss(_build(name, how)), td.set("density_ratio", w)))
     for key, value in per_sample.items():
         expected = (_per_sample(value) * w.squeeze(-1)).sum() / w.sum()
         torch.testing.assert_close(weighted[key], expected, rtol=1e-5, atol=1e-6, msg=key)
 
 
-def test_zero_one_weights_give_the_loss_on_the_selected_rows(name):
+def test_zero_one_weights_give_the_loss_on_the_selected_rows(name, how):
     """0/1 weights: the unwrapped loss on the rows of weight 1. A loss that draws random numbers draws them for the
     whole batch, so it is compared with its per-sample terms on those rows under the same random state; the others
     with the unwrapped loss (reduction="mean") run on the selected rows alone."""
     keep = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0], dtype=torch.bool)
     td = _data(name)
-    weighted = _terms(_call(WeightedLoss(_build(name, "none")), td.set("density_ratio", keep.float())))
+    weighted = _terms(_call(WeightedLoss(_build(name, how)), td.set("density_ratio", keep.float())))
     if LOSSES[name][2]:
         expected = {k: _per_sample(v)[keep].mean() for k, v in _terms(_call(_build(name, "none"), td)).items()}
     else:
@@ -174,14 +187,14 @@ def test_zero_one_weights_give_the_loss_on_the_selected_rows(name):
         torch.testing.assert_close(weighted[key], expected[key], rtol=1e-5, atol=1e-6, msg=key)
 
 
-def test_priority_weight_multiplies_once(name):
+def test_priority_weight_multiplies_once(name, how):
     """ŵ times the batch's "priority_weight": Σ ŵp l / Σ ŵp, for losses that read it natively (no double weighting)
     and for those that do not; with ŵ ≡ 1, a native loss gives its own priority-weighted loss."""
     g = torch.Generator().manual_seed(5)
     w, p = torch.rand(B, generator=g) + 0.1, torch.rand(B, generator=g) + 0.1
     td = _data(name)
     per_sample = _terms(_call(_build(name, "none"), td))  # no priority_weight in td: unweighted terms
-    loss = WeightedLoss(_build(name, "none"))
+    loss = WeightedLoss(_build(name, how))
     weighted = _terms(_call(loss, td.clone().set("density_ratio", w).set("priority_weight", p)))
     for key, value in per_sample.items():
         expected = (_per_sample(value) * w * p).sum() / (w * p).sum()
@@ -242,9 +255,25 @@ def store_density_ratio_doc() -> str:
 
 
 # ---------------------------------------------------------------- refusals, keys, targets, estimator
-def test_refuses_a_loss_that_reduces():
-    with pytest.raises(ValueError, match=r"IQLLoss.*reduction='none'.*got reduction='mean'"):
-        WeightedLoss(_build("IQLLoss", "mean"))
+def test_a_loss_built_with_the_default_reduction_gives_per_sample_terms_to_the_wrapper():
+    torch.manual_seed(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no reduction="none" warning: the wrapper sets scalar_output_mode itself
+        iql = tro.IQLLoss(_stochastic_actor(), _q(), _v())
+        assert iql.reduction == "mean"
+        loss = WeightedLoss(iql)
+    assert iql.reduction == "none" and iql.scalar_output_mode == "exclude"
+    td = _data("IQLLoss")
+    w = torch.rand(B, generator=torch.Generator().manual_seed(6)) + 0.1
+    weighted = _terms(_call(loss, td.clone().set("density_ratio", w)))
+    per_sample = _terms(_call(_build("IQLLoss", "none"), td))
+    assert weighted.keys() == per_sample.keys() == {"loss_actor", "loss_qvalue", "loss_value"}
+    for key, value in per_sample.items():
+        torch.testing.assert_close(weighted[key], (_per_sample(value) * w).sum() / w.sum(), msg=key)
+    with pytest.raises(ValueError, match=r"reduction must be one of"):
+        bad = _build("BCLoss", None)
+        bad.reduction = "median"
+        WeightedLoss(bad)
 
 
 def test_refuses_a_batch_level_term_at_construction():

@@ -15,6 +15,7 @@ from torchrl.objectives import LossModule
 from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate  # torchrl's SoftUpdate, one foreach lerp per step
+from torchrl_wbrm.objectives.functional import td3bc_lambda
 
 #: the recipe's schema, :class:`torchrl_wbrm.training.config.WBRMConfig` (a layer above this one: only its fields are
 #: read here, never imported)
@@ -185,10 +186,12 @@ class ExpertCloning:
     """The actor's support term: TD3+BC's cloning, toward the expert's actions in S^e, in unit actions.
 
     The actor step minimises ``λ · (−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x_e) − a_e) / h‖² / m``, with
-    ``λ = α / mean_D |Q(x, μ(x))|`` (Fujimoto & Gu's normalisation: the Q term has the same size whatever the reward
-    scale) and ``h`` the half-width of the action box (the cloning term has the same size whatever the action
-    bounds; ``m`` the action dimension). S^e, the expert samples the method already holds for stage 1, keeps μ on the
-    expert's support; Q then moves it only where Q says it pays. Its batches are drawn from a torchrl replay buffer
+    ``λ = α / |mean_D Q(x, μ(x))|`` (:func:`~torchrl_wbrm.objectives.functional.td3bc_lambda` of the batch's mean
+    Q: Fujimoto & Gu's normalisation, the Q term has the same size whatever the reward scale; it equals their
+    ``α / mean_D |Q|`` wherever Q keeps one sign over the batch, as on the LQR tasks) and ``h`` the half-width of
+    the action box (the cloning term has the same size whatever the action bounds; ``m`` the action dimension).
+    S^e, the expert samples the method already holds for stage 1, keeps μ on the expert's support; Q then moves it
+    only where Q says it pays. Its batches are drawn from a torchrl replay buffer
     over S^e with the global generator (checkpointed with the run).
 
     Args:
@@ -212,13 +215,13 @@ class ExpertCloning:
         self.half_width = ((action_spec.space.high - action_spec.space.low) / 2).clamp_min(1e-6).to(torch.float32)
 
     def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params) -> tuple[torch.Tensor, dict]:
-        """``loss_q = −mean_D Q(x, μ(x))``; returns the actor's loss and the cloning term (detached)."""
+        """``loss_q = −mean_D Q(x, μ(x))`` and ``q_mean_abs = |mean_D Q(x, μ(x))|``; returns the actor's loss and the
+        cloning term (detached)."""
         expert = self.buffer.sample()
         with params.to_module(self.actor):
             mu = self.actor(expert.select(*self.actor.in_keys))["action"]
         bc = ((mu - expert["action"]) / self.half_width.to(mu.device)).pow(2).mean()
-        lmbd = self.alpha / q_mean_abs.detach().clamp_min(1e-6)
-        return lmbd * loss_q + bc, {"expert_bc_loss": bc.detach()}
+        return td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc, {"expert_bc_loss": bc.detach()}
 
 
 def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, updater=None, every_step=False,
@@ -227,26 +230,17 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
 
     ``updater`` is stepped after each actor step (``SoftUpdate``) or, with ``every_step``, after every Q step
     (``HardUpdate`` counts calls and copies every K of them).
-
-    With ``q.compile`` the two losses are :class:`~torchrl_wbrm.objectives._compiled.CompiledBellmanLosses` (the same
-    figures, computed by ``torch.compile``d functions); the optimisers and the updater stay as they are. The step
-    function then carries them as ``step.compiled`` (its ``compile_seconds``).
     """
     qc = cfg.q
-    losses = loss
-    if getattr(qc, "compile", False):
-        from torchrl_wbrm.objectives._compiled import CompiledBellmanLosses
-
-        losses = CompiledBellmanLosses(loss)
 
     def step(batch: TensorDictBase, i: int) -> dict:
-        loss_value, figures = losses.value_loss(batch)
+        loss_value, figures = loss.value_loss(batch)
         descend(loss_value, optimisers["value"], qc.grad_clip)
         out = {"loss_value": loss_value.detach(), **scalars(figures)}
         if updater is not None and every_step:
             updater.step()
         if i % qc.actor_delay == 0 and loss.has_actor:
-            loss_actor, actor_figures = losses.actor_loss(batch)
+            loss_actor, actor_figures = loss.actor_loss(batch)
             if cloning is not None:
                 loss_actor, bc_figures = cloning(loss_actor, actor_figures["actor_q_mean"].abs(),
                                                  loss.actor_network_params)
@@ -257,7 +251,6 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
                 updater.step()
         return out
 
-    step.compiled = losses if losses is not loss else None
     return step
 
 

@@ -1,8 +1,11 @@
 r"""Maximisers: ``max_{a'} Q(x', a')`` for the Bellman target ``T*Q(x, a) = r + γ max_{a'} Q(x', a')`` (Section 3).
 
-A maximiser is called as ``maximiser(q_network, tensordict, action_key=..., value_key=..., actor_action=...)``
-and returns the maximum over actions, of the tensordict's batch shape. It only *calls* ``q_network``; the loss decides
-which parameters are loaded into it (online or target) and whether gradients flow.
+A maximiser's :meth:`ActionMaximiser.maximise` is the one implementation: it is called as
+``maximiser.maximise(q, observations, batch_shape, action_key=..., actor_action=...)`` with ``q(inputs,
+batch_shape)`` a function that evaluates Q on a mapping of input tensors (the loss's
+:class:`~torchrl_wbrm.objectives._fast.NetworkCall`, with the parameters, online or target, and the gradient mode the
+loss chose), and returns the maximum over actions, of shape ``batch_shape``. Calling the maximiser as a module,
+``maximiser(q_network, tensordict, ...)``, runs the same method on a TensorDict module.
 
 - :class:`GreedyDiscreteMaximiser`: discrete actions, ``max_a Q(x, a)`` over a Q head writing ``"action_value"``
   (as TorchRL's DQNLoss).
@@ -13,8 +16,10 @@ which parameters are loaded into it (online or target) and whether gradients flo
 """
 from __future__ import annotations
 
+from typing import Callable, Mapping
+
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
@@ -25,6 +30,7 @@ __all__ = [
     "ActorMaximiser",
     "GreedyDiscreteMaximiser",
     "SampledActionMaximiser",
+    "max_over_candidates",
     "max_q_over_candidates",
     "uniform_actions",
 ]
@@ -36,6 +42,39 @@ def uniform_actions(low: torch.Tensor, high: torch.Tensor, num_samples: int, bat
     return low + (high - low) * torch.rand(shape, device=low.device, dtype=low.dtype)
 
 
+#: ``q(inputs, batch_shape) -> Q``: Q's raw output on a mapping of input tensors with leading shape ``batch_shape``.
+QFunction = Callable[[Mapping[NestedKey, torch.Tensor], torch.Size], torch.Tensor]
+
+
+def max_over_candidates(
+    q: QFunction,
+    observations: Mapping[NestedKey, torch.Tensor],
+    candidates: torch.Tensor,
+    batch_shape: torch.Size,
+    *,
+    action_key: NestedKey = "action",
+) -> torch.Tensor:
+    """``max_k Q(x, a_k)`` over candidate actions ``candidates`` of shape ``[K, *B, *A]`` (``B = batch_shape``);
+    returns shape ``[*B]``.
+
+    The K candidates are evaluated in one batched call of ``q`` on ``[K, *B]`` (the observations expanded, no
+    Python loop over candidates or batch). The gradient, if any, flows through the chosen candidate's Q value.
+    """
+    k = candidates.shape[0]
+    inputs = {key: value.expand(k, *value.shape) for key, value in observations.items()}
+    inputs[action_key] = candidates
+    return q(inputs, torch.Size([k, *batch_shape])).squeeze(-1).max(0).values
+
+
+def _td_function(q_network: TensorDictModuleBase, value_key: NestedKey, device) -> QFunction:
+    """A :data:`QFunction` of a TensorDict module: the inputs in a new TensorDict, ``value_key`` read."""
+
+    def q(inputs, batch_shape):
+        return q_network(TensorDict(dict(inputs), batch_size=batch_shape, device=device)).get(value_key)
+
+    return q
+
+
 def max_q_over_candidates(
     q_network: TensorDictModuleBase,
     tensordict: TensorDictBase,
@@ -44,22 +83,29 @@ def max_q_over_candidates(
     action_key: NestedKey = "action",
     value_key: NestedKey = "state_action_value",
 ) -> torch.Tensor:
-    """``max_k Q(x, a_k)`` over candidate actions ``candidates`` of shape ``[K, *B, *A]``; returns shape ``[*B]``.
-
-    The K candidates are evaluated in one batched call of ``q_network`` (no Python loop over candidates or batch).
-    The gradient, if any, flows through the chosen candidate's Q value.
-    """
-    num_candidates = candidates.shape[0]
-    expanded = tensordict.expand(num_candidates, *tensordict.batch_size).clone(False)
-    expanded.set(action_key, candidates)
-    values = q_network(expanded).get(value_key).squeeze(-1)  # [K, *B]
-    return values.max(0).values
+    """:func:`max_over_candidates` for a TensorDict module ``q_network`` reading ``tensordict``'s entries."""
+    observations = {key: tensordict.get(key) for key in tensordict.keys(True, True) if key != action_key}
+    q = _td_function(q_network, value_key, tensordict.device)
+    return max_over_candidates(q, observations, candidates, tensordict.batch_size, action_key=action_key)
 
 
 class ActionMaximiser(nn.Module):
-    """Base class: ``forward(q_network, tensordict, *, action_key, value_key, actor_action=None) -> max_a Q``."""
+    """Base class: :meth:`maximise` on tensors; called as a module on a TensorDict module and a TensorDict."""
 
     needs_actor: bool = False
+
+    def maximise(
+        self,
+        q: QFunction,
+        observations: Mapping[NestedKey, torch.Tensor],
+        batch_shape: torch.Size,
+        *,
+        action_key: NestedKey = "action",
+        actor_action: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``max_a Q(x, a)`` of shape ``batch_shape``, with ``q`` a :data:`QFunction` and ``observations`` Q's inputs
+        other than the action."""
+        raise NotImplementedError(f"{type(self).__name__} must implement maximise(q, observations, batch_shape, ...).")
 
     def forward(
         self,
@@ -70,7 +116,11 @@ class ActionMaximiser(nn.Module):
         value_key: NestedKey = "state_action_value",
         actor_action: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        raise NotImplementedError
+        """:meth:`maximise` with Q the TensorDict module ``q_network`` (its output ``value_key``) on the entries of
+        ``tensordict``."""
+        observations = {key: tensordict.get(key) for key in tensordict.keys(True, True) if key != action_key}
+        return self.maximise(_td_function(q_network, value_key, tensordict.device), observations,
+                             tensordict.batch_size, action_key=action_key, actor_action=actor_action)
 
 
 class GreedyDiscreteMaximiser(ActionMaximiser):
@@ -86,8 +136,12 @@ class GreedyDiscreteMaximiser(ActionMaximiser):
         torch.Size([4])
     """
 
+    def maximise(self, q, observations, batch_shape, *, action_key="action", actor_action=None):
+        return q(observations, batch_shape).max(-1).values
+
     def forward(self, q_network, tensordict, *, action_key="action", value_key="action_value", actor_action=None):
-        return q_network(tensordict.copy()).get(value_key).max(-1).values
+        return super().forward(q_network, tensordict, action_key=action_key, value_key=value_key,
+                               actor_action=actor_action)
 
 
 class ActorMaximiser(ActionMaximiser):
@@ -95,12 +149,12 @@ class ActorMaximiser(ActionMaximiser):
 
     needs_actor = True
 
-    def forward(self, q_network, tensordict, *, action_key="action", value_key="state_action_value", actor_action=None):
+    def maximise(self, q, observations, batch_shape, *, action_key="action", actor_action=None):
         if actor_action is None:
             raise ValueError("ActorMaximiser needs actor_action = μ(x); build the loss with an actor_network.")
-        return max_q_over_candidates(
-            q_network, tensordict, actor_action.unsqueeze(0), action_key=action_key, value_key=value_key
-        )
+        # one candidate: Q(x, μ(x)) itself, evaluated on [*B] (the same matrix products on the same rows as a
+        # [1, *B] evaluation, and the max of one value is that value)
+        return q({**observations, action_key: actor_action}, batch_shape).squeeze(-1)
 
 
 class SampledActionMaximiser(ActionMaximiser):
@@ -136,11 +190,11 @@ class SampledActionMaximiser(ActionMaximiser):
         self.register_buffer("low", low.clone())
         self.register_buffer("high", high.clone())
 
-    def forward(self, q_network, tensordict, *, action_key="action", value_key="state_action_value", actor_action=None):
-        candidates = uniform_actions(self.low, self.high, self.num_samples, tensordict.batch_size)
+    def maximise(self, q, observations, batch_shape, *, action_key="action", actor_action=None):
+        candidates = uniform_actions(self.low, self.high, self.num_samples, batch_shape)
         if actor_action is not None:
             candidates = torch.cat([candidates, actor_action.unsqueeze(0)], 0)
-        return max_q_over_candidates(q_network, tensordict, candidates, action_key=action_key, value_key=value_key)
+        return max_over_candidates(q, observations, candidates, batch_shape, action_key=action_key)
 
     def extra_repr(self) -> str:
         return f"num_samples={self.num_samples}"

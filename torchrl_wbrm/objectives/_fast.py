@@ -1,43 +1,58 @@
-"""The losses' hot path without TensorDict bookkeeping: calling a functional network on tensors, and a soft target
-update over flat tensor lists.
+"""Calling a loss's networks on tensors, and a soft target update over flat tensor lists.
 
 TorchRL's losses hold each network as a parameter-less ("meta") module plus a ``TensorDictParams``, and call it as
 ``with params.to_module(net): net(TensorDict(...))``. Per call that costs a TensorDict build, the ``to_module`` swap
 and the ``TensorDictModule`` output path (in tensordict 0.14 ``TensorDict.from_any`` runs an
 ``importlib.util.find_spec("pandas")`` on every output); on the project's 2×256 networks at batch 256 it was a third
-of a critic step. :class:`FunctionalCall` does the same computation with plain dictionary assignments: the same
-parameter tensors are put in the same module slots and ``net.module`` is called on the same input tensors, so the
-result, its gradient and the random draws are identical (tested against the TensorDict path).
-
-It applies to a plain :class:`~tensordict.nn.TensorDictModule` (``ValueOperator``, a non-``safe`` ``Actor``,
-``DensityRatioNetwork``): one output key, no ``method``, no keyword inputs, no hooks on the wrapper. Anything else
-(a ``TensorDictSequential``, a probabilistic actor, a safe actor) gets ``None`` from :meth:`FunctionalCall.build`
-and keeps the TensorDict path.
+of a critic step. :class:`NetworkCall` is the one way the losses call a network: for a plain
+:class:`~tensordict.nn.TensorDictModule` (``ValueOperator``, a non-``safe`` ``Actor``, ``DensityRatioNetwork``: one
+output key, no ``method``, no keyword inputs, no hooks on the wrapper) it puts the same parameter tensors in the same
+module slots with plain dictionary assignments and calls ``net.module`` on the input tensors, so the result, its
+gradient and the random draws are those of the TensorDict call (tested); for any other module (a
+``TensorDictSequential``, a probabilistic or safe actor) it makes that TensorDict call.
 """
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictParams
 from torch import nn
 from torchrl.objectives import SoftUpdate
 
-__all__ = ["FunctionalCall", "ForeachSoftUpdate"]
+from torchrl_wbrm.objectives._utils import get_entry
+
+__all__ = ["ForeachSoftUpdate", "NetworkCall"]
 
 
-class FunctionalCall:
-    """``network.module(*tensors)`` with the entries of a ``TensorDictParams`` placed in the module's slots.
+class NetworkCall:
+    """``network(params, inputs) -> output``: a loss's functional network called on tensors.
 
-    Build it with :meth:`build` (``None`` where the network is not a plain ``TensorDictModule``); call it as
-    ``call(params, *tensors, detach=False)``. ``detach=True`` puts detached views in (no gradient reaches the
-    parameters, it still reaches the inputs), as ``params.detach().to_module(...)`` does.
+    Args:
+        network (TensorDictModuleBase): the loss's (parameter-less) module, e.g. ``loss.value_network``.
+        params (TensorDictParams): its parameters, e.g. ``loss.value_network_params`` (their names, not values, are
+            read here: any parameters of the same structure can be passed to each call).
+        out_key (NestedKey): the output read.
+
+    Keyword Args:
+        why (str): what the output is, for the KeyError when the network does not write ``out_key``.
+        direct (bool): call ``network.module`` on the tensors where the network is a plain ``TensorDictModule``
+            (``True``, default); ``False`` always makes the TensorDict call. :attr:`direct` tells which is used.
+
+    Called as ``call(params, inputs, batch_size, detach=False)`` with ``inputs`` a mapping from each of the
+    network's in_keys to a tensor whose leading dimensions are ``batch_size``. ``detach=True`` puts detached
+    parameters in (no gradient reaches them; it still reaches the inputs), as ``params.detach().to_module(...)``.
     """
 
-    __slots__ = ("network", "module", "slots")
+    __slots__ = ("network", "module", "slots", "out_key", "in_keys", "direct", "why")
 
-    def __init__(self, network: TensorDictModule, slots: dict[str, tuple[dict, str]]):
+    def __init__(self, network, params, out_key, *, why: str = "the network's output", direct: bool = True):
         self.network = network
-        self.module = network.module
-        self.slots = slots
+        self.why = why
+        self.module = getattr(network, "module", None)
+        self.out_key = out_key
+        self.in_keys = list(network.in_keys)
+        self.slots = self._slots(network, params, out_key) if direct else None
+        self.direct = self.slots is not None
 
     @staticmethod
     def is_plain(network) -> bool:
@@ -60,13 +75,11 @@ class FunctionalCall:
         )
 
     @classmethod
-    def build(cls, network, params) -> "FunctionalCall | None":
-        """The fast call of ``network`` (a loss's meta module) for ``params`` (its ``TensorDictParams``), or ``None``.
-
-        Every entry of ``params`` must name a parameter or buffer slot of ``network`` and every slot of ``network``
-        must be covered, or the TensorDict path is kept.
-        """
-        if not cls.is_plain(network):
+    def _slots(cls, network, params, out_key) -> dict[str, tuple[dict, str]] | None:
+        """The module slot of each entry of ``params``, or ``None`` where the TensorDict call is needed: a network
+        that is not plain, another output key, or an entry of ``params`` that names no slot (or a slot no entry
+        covers)."""
+        if not cls.is_plain(network) or list(network.out_keys) != [out_key]:
             return None
         if not isinstance(params, TensorDictParams):
             return None
@@ -91,9 +104,14 @@ class FunctionalCall:
                     return None
         if set(slots) != wanted:
             return None
-        return cls(network, slots)
+        return slots
 
-    def __call__(self, params, *tensors: torch.Tensor, detach: bool = False) -> torch.Tensor:
+    def __call__(self, params, inputs, batch_size, *, detach: bool = False) -> torch.Tensor:
+        if self.slots is None:
+            td = TensorDict({key: inputs[key] for key in self.in_keys}, batch_size=batch_size)
+            with (params.detach() if detach else params).to_module(self.network, preserve_module_state=False):
+                out = self.network(td)
+            return get_entry(out, self.out_key, self.why)
         saved = []
         slots = self.slots
         try:
@@ -101,7 +119,7 @@ class FunctionalCall:
                 container, attr = slots[name]
                 saved.append((container, attr, container[attr]))
                 container[attr] = value.detach() if detach and value is not None else value
-            return self.module(*tensors)
+            return self.module(*[inputs[key] for key in self.in_keys])
         finally:
             for container, attr, old in saved:
                 container[attr] = old

@@ -28,15 +28,6 @@ def check_reduction(reduction: str | None) -> str:
     return reduction
 
 
-def reduce_batch(value: torch.Tensor, reduction: str) -> torch.Tensor:
-    """``"mean"``, ``"sum"`` over every element, or ``"none"`` (unchanged)."""
-    if reduction == "mean":
-        return value.mean()
-    if reduction == "sum":
-        return value.sum()
-    return value
-
-
 def fast_get(tensordict: TensorDictBase, key: NestedKey, default=None):
     """``tensordict.get(key, default)``; for a plain ``TensorDict`` and a string key or a flat tuple of strings, read
     straight from the (nested) dictionaries, which is what ``TensorDict.get`` does after unravelling the key."""

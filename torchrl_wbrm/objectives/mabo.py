@@ -11,40 +11,13 @@ from tensordict.utils import NestedKey
 from torchrl.data import TensorSpec
 
 from torchrl_wbrm.modules.maximisers import ActionMaximiser
-from torchrl_wbrm.objectives._utils import get_entry, per_sample, reduce_batch
-from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss, weighted_bellman_residual
+from torchrl_wbrm.objectives._utils import per_sample
+from torchrl_wbrm.objectives.functional import average_bellman_residual, bellman_residual, reduce_batch
+from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss
 
 __all__ = ["ADVERSARIES", "MABOLoss", "average_bellman_residual", "linear_adversary_weight"]
 
 ADVERSARIES = ("network", "linear")
-
-
-def average_bellman_residual(
-    q_value: torch.Tensor,
-    target_value: torch.Tensor,
-    weight: torch.Tensor,
-    *,
-    reduction: str = "mean",
-) -> torch.Tensor:
-    r"""MABO's inner objective for one adversary ``w``: ``| (1/n) Σ_i w(x_i, a_i) δ_i |``, ``δ_i = Q(x_i, a_i) − Y_i``.
-
-    For ``"mean"`` and ``"sum"`` this is :func:`~torchrl_wbrm.objectives.weighted_bellman_residual` with
-    ``residual="absolute_mean"`` (called, not copied). ``"none"`` differs from that function on purpose: it returns
-    the per-sample terms ``s · w_i δ_i`` with ``s = sign(Σ_j w_j δ_j)`` (detached), so that their mean (sum) equals
-    the ``"mean"`` (``"sum"``) loss *in value and in gradient* (``s`` is the sub-gradient of ``|·|``).
-
-    Examples:
-        >>> import torch
-        >>> q, y, w = torch.tensor([1.0, 2.0]), torch.tensor([0.0, 4.0]), torch.tensor([1.0, 1.0])
-        >>> average_bellman_residual(q, y, w)  # |(1 − 2) / 2|
-        tensor(0.5000)
-        >>> average_bellman_residual(q, y, w, reduction="none")  # sign(−1) · (1, −2)
-        tensor([-1.,  2.])
-    """
-    if reduction == "none":
-        signed = weight * (q_value - target_value)
-        return signed * signed.sum().sign().detach()
-    return weighted_bellman_residual(q_value, target_value, weight, residual="absolute_mean", reduction=reduction)
 
 
 def linear_adversary_weight(features: torch.Tensor, td_error: torch.Tensor, *, w_bound: float) -> torch.Tensor:
@@ -153,7 +126,7 @@ class MABOLoss(WeightedBellmanLoss):
         reduction (str, optional): ``"mean"`` (default, also for ``None``), ``"sum"`` or ``"none"``. ``"sum"`` is
             ``| Σ_i w_i δ_i |`` (and ``−| Σ_i w_i δ_i | + λ Σ_i w_i²``). ``"none"`` gives per-sample terms whose mean
             is the ``"mean"`` loss, value and gradient: ``s · w_i δ_i`` and ``−s · w_i δ_i + λ w_i²`` with
-            ``s = sign(Σ_j w_j δ_j)`` (see :func:`average_bellman_residual`); ``"loss_actor"`` is ``−Q(x_i, μ(x_i))``.
+            ``s = sign(Σ_j w_j δ_j)`` (see :func:`~torchrl_wbrm.objectives.functional.average_bellman_residual`); ``"loss_actor"`` is ``−Q(x_i, μ(x_i))``.
 
     Output: ``"loss_value"``, ``"loss_critic"`` (``adversary="network"``), ``"loss_actor"`` (with an actor) and
     detached diagnostics ``"td_error_mean"``, ``"td_error_abs_mean"``, ``"q_mean"`` (mean Q(x, a)),
@@ -320,6 +293,9 @@ class MABOLoss(WeightedBellmanLoss):
         self._out_keys = values
 
     # ---------------------------------------------------------------- pieces
+    def _out_key(self, name: str) -> NestedKey:
+        return self.tensor_keys.adversary if name == "critic_network" else super()._out_key(name)
+
     def adversary_weight(self, tensordict: TensorDictBase, td_error: torch.Tensor) -> torch.Tensor:
         """The adversary's ``w(x_i, a_i)``, shape ``[*B]``.
 
@@ -327,14 +303,13 @@ class MABOLoss(WeightedBellmanLoss):
         ``"linear"``: the exact maximiser of :func:`linear_adversary_weight` given ``td_error`` (detached).
         """
         key = self.tensor_keys.adversary
-        inputs = self._inputs(tensordict, self.critic_network.in_keys, "an input of the adversary (critic_network)")
-        if self.adversary == "network":
-            with self.critic_network_params.to_module(self.critic_network, preserve_module_state=False):
-                raw = get_entry(self.critic_network(inputs), key, "the critic network's output")
-            return self.w_bound * torch.tanh(per_sample(raw, tensordict.batch_size, key))
-        with torch.no_grad(), self.critic_network_params.to_module(self.critic_network, preserve_module_state=False):
-            features = get_entry(self.critic_network(inputs), key, "the feature map φ(x, a) of the linear adversary")
         batch = tensordict.batch_size
+        inputs = self._entries(tensordict, self.critic_network.in_keys, "an input of the adversary (critic_network)")
+        if self.adversary == "network":
+            raw = self._call("critic_network", self.critic_network_params, inputs, batch)
+            return self.w_bound * torch.tanh(per_sample(raw, batch, key))
+        with torch.no_grad():
+            features = self._call("critic_network", self.critic_network_params, inputs, batch)
         if features.ndim != len(batch) + 1 or features.shape[:-1] != batch:
             raise ValueError(
                 f"Entry {key!r} has shape {tuple(features.shape)}; adversary='linear' expects features φ(x, a) of "
@@ -345,7 +320,7 @@ class MABOLoss(WeightedBellmanLoss):
     def _losses(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None, dict]:
         """``(loss_value, loss_critic or None, diagnostics)`` from one evaluation of Q, its target and w."""
         q_value, target_value = self.bellman_error(tensordict)
-        td_error = (q_value - target_value).detach()
+        td_error = bellman_residual(q_value, target_value).detach()
         weight = self.adversary_weight(tensordict, td_error)
         loss_value = average_bellman_residual(q_value, target_value, weight.detach(), reduction=self.reduction)
         loss_critic = None

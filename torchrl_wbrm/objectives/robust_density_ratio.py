@@ -1,7 +1,6 @@
 """Stage 1 of WBRM: the robust density-ratio loss (Basu's power divergence), Section 3 of the paper."""
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -11,7 +10,7 @@ from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from torchrl_wbrm.objectives._fast import FunctionalCall
+from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import (
     check_finite,
     check_input_dtype,
@@ -22,87 +21,14 @@ from torchrl_wbrm.objectives._utils import (
     check_sign,
     get_entry,
     input_width,
-    reduce_batch,
+)
+from torchrl_wbrm.objectives.functional import (
+    basu_power_divergence,
+    effective_sample_size,
+    power_divergence_integrands,
 )
 
 __all__ = ["RobustDensityRatioLoss", "basu_power_divergence", "power_divergence_integrands"]
-
-
-def power_divergence_integrands(w: torch.Tensor, alpha: float | str) -> tuple[torch.Tensor, torch.Tensor]:
-    r"""The two integrands ``(ψ(w), φ(w))`` of the Basu power-divergence density-ratio loss.
-
-    ``R_α(w) = E_b[ψ(w)] − E_e[φ(w)]`` with, for ``α > 0``,
-
-        ψ(w) = w^{1+α},    φ(w) = (1 + 1/α) · w^α,
-
-    and for the KL limit ``α → 0`` (``alpha="kl"``, the unnormalised-KL / KLIEP form) ``ψ(w) = w``, ``φ(w) = log w``.
-    They come from the Bregman divergence ``E_b[f(w*) − f(w) − f'(w)(w* − w)]`` with ``f(t) = (t^{1+α} − t)/α``
-    (``f(t) = t log t − t`` for KL): ``ψ = f'(w)w − f(w)``, ``φ = f'(w)``, constants dropped (Sugiyama, Suzuki &
-    Kanamori 2012, "Density-ratio matching under the Bregman divergence"). At ``α = ½``: ``ψ = w^{3/2}``,
-    ``φ = 3 w^{1/2}`` (the paper's Section 3); at ``α = 1``: ``ψ = w²``, ``φ = 2w`` (uLSIF).
-    """
-    if alpha == "kl":
-        return w, torch.log(w)
-    return w.pow(1 + alpha), (1 + 1 / alpha) * w.pow(alpha)
-
-
-def basu_power_divergence(
-    w_behaviour: torch.Tensor,
-    w_expert: torch.Tensor,
-    *,
-    alpha: float | str = 0.5,
-    relative_beta: float = 0.0,
-    non_negative_correction: float | None = None,
-    reduction: str = "mean",
-) -> torch.Tensor:
-    r"""The empirical robust density-ratio loss of Section 3 ("Density Ratio Estimation for dP^e/dP^b").
-
-    Paper (α = ½):  ``R̂_S(w) = (1/m) Σ_i w(X^b_i, A^b_i)^{3/2} − (3/m) Σ_i w(X^e_i, A^e_i)^{1/2}``.
-    General α (:func:`power_divergence_integrands`):  ``R̂_α(w) = mean_b ψ(w) − mean_e φ(w)``, minimised in
-    population by the true ratio ``w^e = dP^e/dP^b`` for every α.
-
-    Relative ratio (RuLSIF, Yamada et al. 2013), ``relative_beta = β ∈ [0, 1)``: the denominator law becomes the
-    mixture ``βP^e + (1 − β)P^b`` and the minimiser the relative ratio ``p_e / (βp_e + (1 − β)p_b) ≤ 1/β``:
-
-        R̂_{α,β}(w) = β · mean_e ψ(w) + (1 − β) · mean_b ψ(w) − mean_e φ(w).
-
-    Non-negative correction (Kato & Teshima 2021, D3RE, "Non-negative Bregman divergence minimization for deep
-    direct density ratio estimation"), ``non_negative_correction = C`` with ``0 < C < 1/sup w^e``: the denominator
-    term is split as ``E_den ψ = (E_den ψ − C · E_e ψ) + C · E_e ψ``. The bracket is non-negative in population
-    (``p_den − C·p_e ≥ 0`` and ``ψ ≥ 0``) but a flexible network can drive its empirical value negative by growing
-    w on expert samples ("train-loss hacking"). It is therefore replaced by its absolute value, the gradient-ascent
-    form of D3RE/nnPU: where the bracket is ≥ 0 the loss equals ``R̂``; where it is < 0 the gradient pushes it
-    back up. (No host sync: ``abs`` instead of a Python branch.)
-
-        R̂_nn(w) = | mean_den ψ(w) − C · mean_e ψ(w) | + C · mean_e ψ(w) − mean_e φ(w).
-
-    Args:
-        w_behaviour (Tensor): ŵ on behaviour samples S^b, all entries > 0.
-        w_expert (Tensor): ŵ on expert samples S^e, all entries > 0.
-
-    Keyword Args:
-        alpha (float or "kl"): the power α > 0, or ``"kl"`` for the α → 0 limit. Defaults to ``0.5``.
-        relative_beta (float): β of the relative ratio; ``0`` (default) is the plain ratio.
-        non_negative_correction (float, optional): D3RE's C; ``None`` (default) means off.
-        reduction (str): how samples are aggregated: ``"mean"`` (default), ``"sum"``, or ``"none"`` for per-pair
-            terms (requires equal shapes and no correction).
-
-    Examples:
-        >>> import torch
-        >>> w = torch.full((4,), 4.0)
-        >>> basu_power_divergence(w, w, alpha=0.5)  # 4^{3/2} − 3·4^{1/2} = 8 − 6
-        tensor(2.)
-    """
-    if reduction == "none" and non_negative_correction is not None:
-        raise ValueError("The non-negative correction acts on batch means; it has no per-sample form.")
-    reduce = functools.partial(reduce_batch, reduction=reduction)
-    psi_behaviour, _ = power_divergence_integrands(w_behaviour, alpha)
-    psi_expert, phi_expert = power_divergence_integrands(w_expert, alpha)
-    denominator = (1 - relative_beta) * reduce(psi_behaviour) + relative_beta * reduce(psi_expert)
-    if non_negative_correction is None:
-        return denominator - reduce(phi_expert)
-    corrected = non_negative_correction * reduce(psi_expert)
-    return (denominator - corrected).abs() + corrected - reduce(phi_expert)
 
 
 class RobustDensityRatioLoss(LossModule):
@@ -110,7 +36,7 @@ class RobustDensityRatioLoss(LossModule):
 
     Paper (α = ½):  ``R̂_S(w) = mean_{S^b} w^{3/2} − 3 · mean_{S^e} w^{1/2}``; for any α > 0
     ``mean_b w^{1+α} − (1 + 1/α) · mean_e w^α`` (α = 1 is uLSIF) and the KL limit ``mean_b w − mean_e log w``
-    (``alpha="kl"``). The equation lives in :func:`basu_power_divergence`. Its population minimiser is the true
+    (``alpha="kl"``). The equation lives in :func:`~torchrl_wbrm.objectives.functional.basu_power_divergence`. Its population minimiser is the true
     ratio, at which ``E_b ŵ = 1``: the diagnostic ``"density_ratio_behaviour_mean"`` should stay near 1.
     The paper's Assumption 4.1 bounds the ratio in ``[Φ, Ψ]``; :class:`~torchrl_wbrm.modules.DensityRatioNetwork`
     enforces it on the network's output.
@@ -194,8 +120,8 @@ class RobustDensityRatioLoss(LossModule):
     ratio_network: TensorDictModule
     ratio_network_params: TensorDictParams
     target_ratio_network_params: TensorDictParams
-    #: Call a plain ratio network on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through a TensorDict
-    #: and ``to_module``; the same computation (tested). ``False`` on an instance forces the TensorDict path.
+    #: How :class:`~torchrl_wbrm.objectives._fast.NetworkCall` calls a plain ratio network: on tensors (``True``) or
+    #: through a TensorDict and ``to_module`` (``False``); the same computation either way (tested).
     fast_path: bool = True
 
     def __init__(
@@ -250,15 +176,15 @@ class RobustDensityRatioLoss(LossModule):
             for key in self.ratio_network.in_keys
         ]
 
-    def _fast(self) -> FunctionalCall | None:
-        """The tensor call of the ratio network, or ``None`` where it needs the TensorDict path."""
-        cache = self.__dict__.get("_fast_cache")
-        if cache is None or cache[0] is not self.ratio_network or cache[2] != self.fast_path:
-            call = None
-            if self.fast_path and list(self.ratio_network.out_keys) == [self.tensor_keys.density_ratio]:
-                call = FunctionalCall.build(self.ratio_network, self.ratio_network_params)
-            cache = self.__dict__["_fast_cache"] = (self.ratio_network, call, self.fast_path)
-        return cache[1]
+    def _network_call(self) -> NetworkCall:
+        """How the ratio network is called (cached per network and :attr:`fast_path`)."""
+        cache = self.__dict__.get("_network_call_cache")
+        if cache is None or cache[0] is not self.ratio_network or cache[1] != self.fast_path:
+            call = NetworkCall(self.ratio_network, self.ratio_network_params, self.tensor_keys.density_ratio,
+                               why=f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}",
+                               direct=self.fast_path)
+            cache = self.__dict__["_network_call_cache"] = (self.ratio_network, self.fast_path, call)
+        return cache[2]
 
     def _network_facts(self) -> tuple[int | None, torch.dtype | None]:
         """``(input width, parameter dtype)`` of the ratio network (cached per network)."""
@@ -281,15 +207,8 @@ class RobustDensityRatioLoss(LossModule):
         check_input_dtype(dtype, named, "ratio network")
         for k, t in named.items():
             check_finite(t, k)
-        fast = self._fast()
-        if fast is not None:
-            w = fast(self.ratio_network_params, *tensors)
-        else:
-            inputs = TensorDict(dict(zip(self.ratio_network.in_keys, tensors)), batch_size=samples.batch_size,
-                                device=samples.device)
-            with self.ratio_network_params.to_module(self.ratio_network, preserve_module_state=False):
-                outputs = self.ratio_network(inputs)
-            w = get_entry(outputs, key, f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}")
+        w = self._network_call()(self.ratio_network_params, dict(zip(self.ratio_network.in_keys, tensors)),
+                                 samples.batch_size)
         if w.shape not in (samples.batch_size, (*samples.batch_size, 1)):
             raise ValueError(
                 f"The ratio network wrote {key!r} with shape {tuple(w.shape)} on {name!r} samples of batch size "
@@ -299,7 +218,7 @@ class RobustDensityRatioLoss(LossModule):
         return w.reshape(samples.batch_size)
 
     def density_ratio_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The loss of Section 3 (:func:`basu_power_divergence`) plus options; returns ``(loss, diagnostics)``."""
+        """The loss of Section 3 (:func:`~torchrl_wbrm.objectives.functional.basu_power_divergence`) plus options; returns ``(loss, diagnostics)``."""
         behaviour = get_entry(tensordict, self.tensor_keys.behaviour, "sub-TensorDict of behaviour samples S^b")
         expert = get_entry(tensordict, self.tensor_keys.expert, "sub-TensorDict of expert samples S^e")
         if self.reduction == "none" and behaviour.batch_size != expert.batch_size:
@@ -334,7 +253,7 @@ class RobustDensityRatioLoss(LossModule):
                 "density_ratio_expert_mean": w_expert.mean(),
                 "density_ratio_min": both.min(),
                 "density_ratio_max": both.max(),
-                "density_ratio_ess": w_behaviour.sum().pow(2) / w_behaviour.pow(2).sum(),
+                "density_ratio_ess": effective_sample_size(w_behaviour),
                 "normalisation_penalty": penalty.detach(),
             }
         return loss, diagnostics

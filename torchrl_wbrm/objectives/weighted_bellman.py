@@ -15,16 +15,24 @@ from torchrl.modules import QValueActor
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
 from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
-from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
     GreedyDiscreteMaximiser,
     SampledActionMaximiser,
-    uniform_actions,
 )
-from torchrl_wbrm.objectives._fast import FunctionalCall
+from torchrl_wbrm.objectives._fast import NetworkCall
+from torchrl_wbrm.objectives.functional import (
+    RESIDUALS,
+    bellman_residual,
+    bellman_target,
+    effective_sample_size,
+    per_sample_weight,
+    reduce_batch,
+    td3bc_lambda,
+    weighted_bellman_residual,
+)
 from torchrl_wbrm.objectives._utils import (
     as_bool_flag,
     check_finite,
@@ -38,63 +46,14 @@ from torchrl_wbrm.objectives._utils import (
     get_entry,
     input_width,
     per_sample,
-    reduce_batch,
 )
 
 __all__ = ["RESIDUALS", "WeightedBellmanLoss", "weighted_bellman_residual"]
-
-RESIDUALS = ("squared", "absolute_mean")
 
 
 def _next(key: NestedKey) -> tuple:
     """``key`` under ``"next"``, flattened: ``("next", "a", "b")`` rather than ``("next", ("a", "b"))``."""
     return ("next", *key) if isinstance(key, tuple) else ("next", key)
-
-
-def weighted_bellman_residual(
-    q_value: torch.Tensor,
-    target_value: torch.Tensor,
-    weight: torch.Tensor,
-    *,
-    residual: str = "squared",
-    reduction: str = "mean",
-) -> torch.Tensor:
-    r"""The weighted Bellman residual of Section 3 ("Methodology").
-
-    With ``δ_i = Q(X_i, A_i) − Y_i`` and ``Y_i = R_i + γ (1 − terminated_i) max_{a'} Q(X'_i, a')`` (the paper's
-    ``Y_i := R_i + γ max_{A'} Q(X'_i, A')``, with no bootstrap after a termination):
-
-    - ``"absolute_mean"`` (the paper's empirical loss): ``L̂_ŵ(Q) = | (1/n) Σ_i ŵ(X_i, A_i) δ_i |``. Note this is one
-      equation per batch: on its own it pins Q only up to directions orthogonal to ŵ. On LQR exp1 (recipe budget,
-      3 seeds, with the residual-gradient bootstrap) its Q̂ error was 4.7× the spread of Q* against 0.38× for
-      ``"squared"``, and its greedy policy lost nearly the whole return (README, "Residual form and bootstrap mode").
-    - ``"squared"``: ``(1/n) Σ_i ŵ(X_i, A_i) δ_i²`` (no ½ factor).
-
-    Args:
-        q_value (Tensor): ``Q(X_i, A_i)``, shape ``[*B]``.
-        target_value (Tensor): ``Y_i``, shape ``[*B]``.
-        weight (Tensor): ``ŵ(X_i, A_i) ≥ 0``, shape ``[*B]``.
-
-    Keyword Args:
-        residual (str): ``"squared"`` (default) or ``"absolute_mean"``.
-        reduction (str): ``"mean"`` (default), ``"sum"`` or ``"none"``: per-sample ``ŵ_i δ_i²`` (squared), or the
-            signed per-sample ``ŵ_i δ_i`` before the absolute value (absolute_mean).
-
-    Examples:
-        >>> import torch
-        >>> q, y, w = torch.tensor([1.0, 2.0]), torch.tensor([0.0, 0.0]), torch.tensor([1.0, 0.5])
-        >>> weighted_bellman_residual(q, y, w, residual="squared")  # (1·1 + 0.5·4) / 2
-        tensor(1.5000)
-        >>> weighted_bellman_residual(q, y, w, residual="absolute_mean")  # |(1·1 + 0.5·2) / 2|
-        tensor(1.)
-    """
-    td_error = q_value - target_value
-    if residual == "squared":
-        return reduce_batch(weight * td_error.pow(2), reduction)
-    if residual == "absolute_mean":
-        weighted = reduce_batch(weight * td_error, reduction)
-        return weighted if reduction == "none" else weighted.abs()
-    raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
 
 
 def _finite_and_non_negative(values: list[torch.Tensor], weight: torch.Tensor | None) -> bool:
@@ -119,7 +78,7 @@ def _finite_and_non_negative(values: list[torch.Tensor], weight: torch.Tensor | 
 
 class WeightedBellmanLoss(LossModule):
     r"""The ŵ-weighted Bellman residual for ``Q ≈ Q*`` (Section 3, "Methodology"; equation in
-    :func:`weighted_bellman_residual`).
+    :func:`~torchrl_wbrm.objectives.functional.weighted_bellman_residual`).
 
     ``δ_i = Q(x_i, a_i) − r_i − γ (1 − terminated_i) · max_{a'} Q(x'_i, a')``;
     ``residual="squared"``: ``mean_i ŵ_i δ_i²``; ``residual="absolute_mean"``: ``| mean_i ŵ_i δ_i |`` (the paper).
@@ -260,8 +219,8 @@ class WeightedBellmanLoss(LossModule):
     default_keys = _AcceptedKeys
     default_value_estimator = ValueEstimators.TD0
     SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.TD0,)
-    #: Call plain networks on tensors (:mod:`torchrl_wbrm.objectives._fast`) instead of through TensorDicts and
-    #: ``to_module``; the same computation (tested). Set ``False`` on an instance to force the TensorDict path.
+    #: How :class:`~torchrl_wbrm.objectives._fast.NetworkCall` calls a plain network: on tensors (``True``) or
+    #: through a TensorDict and ``to_module`` (``False``); the same computation either way (tested).
     fast_path: bool = True
     #: Q(x, a) past ``q_bound_margin · max|r| / (1 − γ)`` warns once: no discounted return of such rewards is that
     #: large, so Q is diverging. ``q_bound_exceeded`` then stays ``True``. max|r| is ``reward_bound`` when set (e.g.
@@ -376,7 +335,9 @@ class WeightedBellmanLoss(LossModule):
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams) -> None:
         """Builds the TD(0) target ``r + γ (1 − terminated) · next_value``; set γ here (default 0.99).
 
-        ``gamma`` must be a finite number in ``[0, 1]`` (a NaN or a γ above 1 is refused, naming it)."""
+        ``gamma`` must be a finite number in ``[0, 1]`` (a NaN or a γ above 1 is refused, naming it). The target is
+        :func:`~torchrl_wbrm.objectives.functional.bellman_target` with the estimator's keys and γ, so only a
+        :class:`~torchrl.objectives.value.TD0Estimator` without ``average_rewards`` is accepted."""
         if "gamma" in hyperparams:
             gamma = hyperparams["gamma"]
             try:
@@ -390,7 +351,8 @@ class WeightedBellmanLoss(LossModule):
         if isinstance(value_type, ValueEstimatorBase) or (
             isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
         ):
-            return LossModule.make_value_estimator(self, value_type, **hyperparams)
+            LossModule.make_value_estimator(self, value_type, **hyperparams)
+            return self._check_value_estimator()
         dispatch_value_estimator(
             self,
             value_type,
@@ -404,6 +366,18 @@ class WeightedBellmanLoss(LossModule):
             value_network=None,
             **hyperparams,
         )
+        self._check_value_estimator()
+
+    def _check_value_estimator(self) -> None:
+        estimator = self._value_estimator
+        if not isinstance(estimator, TD0Estimator) or getattr(estimator, "average_rewards", False):
+            self._value_estimator = None
+            raise ValueError(
+                f"{type(self).__name__} computes the TD(0) target r + γ (1 − terminated) max Q(x', ·); got "
+                f"{type(estimator).__name__}"
+                f"{' with average_rewards=True' if isinstance(estimator, TD0Estimator) else ''}. Use "
+                "make_value_estimator(gamma=...) (a TD0Estimator without average_rewards)."
+            )
 
     @property
     def _observation_keys(self) -> list[NestedKey]:
@@ -460,85 +434,67 @@ class WeightedBellmanLoss(LossModule):
             self.__dict__["_facts_cache"] = cache
         return cache[1], cache[2]
 
-    def _fast(self) -> tuple[FunctionalCall, FunctionalCall | None] | None:
-        """``(Q call, actor call)`` for the tensor path, or ``None`` where the TensorDict path is needed (a discrete
-        head, a custom maximiser, a network that is not a plain TensorDictModule, other output keys)."""
-        actor = self.actor_network if self.has_actor else None
-        cache = self.__dict__.get("_fast_cache")
-        if cache is not None and cache[0] is self.value_network and cache[1] is actor and cache[3] == self.fast_path:
-            return cache[2]
-        plan = None
-        if (
-            self.fast_path
-            and not self.discrete
-            and type(self.maximiser) in (ActorMaximiser, SampledActionMaximiser)
-            and list(self.value_network.out_keys) == [self.tensor_keys.state_action_value]
-            and (actor is None or list(actor.out_keys) == [self.tensor_keys.action])
-        ):
-            value_call = FunctionalCall.build(self.value_network, self.value_network_params)
-            actor_call = None if actor is None else FunctionalCall.build(actor, self.actor_network_params)
-            if value_call is not None and (actor is None or actor_call is not None):
-                plan = (value_call, actor_call)
-        self.__dict__["_fast_cache"] = (self.value_network, actor, plan, self.fast_path)
-        return plan
+    def _network_call(self, name: str) -> NetworkCall:
+        """The :class:`~torchrl_wbrm.objectives._fast.NetworkCall` of ``"value_network"``, ``"actor_network"`` (or a
+        subclass's ``"critic_network"``), cached per network and :attr:`fast_path`."""
+        network = getattr(self, name)
+        cache = self.__dict__.setdefault("_network_calls", {})
+        entry = cache.get(name)
+        if entry is None or entry[0] is not network or entry[1] != self.fast_path:
+            call = NetworkCall(network, getattr(self, f"{name}_params"), self._out_key(name),
+                               why=f"the {name.replace('_', ' ')}'s output", direct=self.fast_path)
+            entry = cache[name] = (network, self.fast_path, call)
+        return entry[2]
 
-    def _td0_target(self, tensordict: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
-        """``r + γ (1 − terminated) · next_value`` as the TD(0) estimator computes it (its keys, its γ), without the
-        TensorDict copy; other estimators (or options) go through ``value_estimate``."""
+    def _out_key(self, name: str) -> NestedKey:
+        """The output read from the network ``name``."""
+        if name == "actor_network":
+            return self.tensor_keys.action
+        return self.tensor_keys.action_value if self.discrete else self.tensor_keys.state_action_value
+
+    def _call(self, name: str, params, inputs, batch_size, *, detach: bool = False) -> torch.Tensor:
+        """How every method calls a network: network ``name`` with ``params`` on the tensors ``inputs`` (its
+        in_keys -> tensors of leading shape ``batch_size``); ``detach``: no gradient to the parameters."""
+        return self._network_call(name)(params, inputs, batch_size, detach=detach)
+
+    def _entries(self, tensordict: TensorDictBase, keys, why: str) -> dict:
+        """``{key: tensordict[key]}`` for ``keys`` (a KeyError naming a missing key and ``why``)."""
+        return {key: get_entry(tensordict, key, why) for key in keys}
+
+    def _target(self, tensordict: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
+        """``Y = r + γ (1 − terminated) · next_value`` (:func:`~torchrl_wbrm.objectives.functional.bellman_target`)
+        with the value estimator's keys and γ (``γ^k`` where the batch holds ``steps_to_next_obs`` ``k``)."""
         estimator = self.value_estimator
-        keys = getattr(estimator, "tensor_keys", None)
-        if (
-            not self.fast_path
-            or type(estimator) is not TD0Estimator
-            or getattr(estimator, "average_rewards", True)
-            or fast_get(tensordict, keys.steps_to_next_obs) is not None
-        ):
-            reward = tensordict.get(_next(self.tensor_keys.reward))
-            return estimator.value_estimate(tensordict.copy(), next_value=next_value.reshape(reward.shape))
+        keys = estimator.tensor_keys
         reward = fast_get(tensordict, _next(keys.reward))
         if estimator.gamma.device != reward.device:
             estimator.gamma = estimator.gamma.to(reward.device)
+        gamma = estimator.gamma
+        steps = fast_get(tensordict, keys.steps_to_next_obs)
+        if steps is not None:
+            gamma = gamma ** steps.view_as(reward)
         done = fast_get(tensordict, _next(keys.done))
         terminated = fast_get(tensordict, _next(keys.terminated), done)
-        return td0_return_estimate(
-            gamma=estimator.gamma, next_state_value=next_value.reshape(reward.shape), reward=reward,
-            terminated=terminated,
-        )
-
-    def _inputs(self, tensordict: TensorDictBase, keys, why: str) -> TensorDict:
-        """A new TensorDict holding ``keys`` of ``tensordict`` (so the input is never written to)."""
-        return TensorDict(
-            {key: get_entry(tensordict, key, why) for key in keys},
-            batch_size=tensordict.batch_size,
-            device=tensordict.device,
-        )
+        return bellman_target(reward, next_value.reshape(reward.shape), terminated, gamma)
 
     def _weight(self, tensordict: TensorDictBase, check: bool = True) -> torch.Tensor:
-        """The per-sample weight, shape ``[*B]`` (detached: the weights are fixed in stage 2): ŵ (``use_weights``)
-        times the ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies.
+        """The per-sample weight, shape ``[*B]`` (detached: the weights are fixed in stage 2), from
+        :func:`~torchrl_wbrm.objectives.functional.per_sample_weight`: ŵ (``use_weights``) times the
+        ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies.
 
         ``check=False`` leaves ŵ's sign check to the caller (:meth:`bellman_error` with ``weight_to_check``)."""
-        weight = None
-        if self.use_weights:
-            key = self.tensor_keys.weight
-            weight = get_entry(
-                tensordict, key, "the per-sample weight ŵ(x, a): write the ratio network's output there, or build "
-                "the loss with use_weights=False"
-            )
-            weight = per_sample(weight, tensordict.batch_size, key).detach()
-            if not weight.is_floating_point():  # integer (or bool) weights: counts, 0/1 selections
-                weight = weight.to(self._network_facts()[1] or torch.get_default_dtype())
-            if check:
-                check_sign(weight, key, strictly_positive=False)
         priority_key = self.tensor_keys.priority_weight
-        if self.use_prioritized_weights in (True, "auto") and not (self.use_weights and priority_key == self.tensor_keys.weight):
-            priority = fast_get(tensordict, priority_key)
-            if priority is not None:
-                priority = per_sample(priority, tensordict.batch_size, priority_key).detach()
-                if not priority.is_floating_point():
-                    priority = priority.to(self._network_facts()[1] or torch.get_default_dtype())
-                check_sign(priority, priority_key, strictly_positive=False)
-                weight = priority if weight is None else weight * priority
+        reads_priority = self.use_prioritized_weights in (True, "auto") and not (
+            self.use_weights and priority_key == self.tensor_keys.weight)
+        weight = per_sample_weight(
+            tensordict,
+            self.tensor_keys.weight if self.use_weights else None,
+            priority_key if reads_priority else None,
+            dtype=self._network_facts()[1],
+            check_weight=check,
+            why="the per-sample weight ŵ(x, a): write the ratio network's output there, or build the loss with "
+                "use_weights=False",
+        )
         if weight is None:
             reward = get_entry(tensordict, _next(self.tensor_keys.reward), "the reward")
             return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
@@ -546,23 +502,16 @@ class WeightedBellmanLoss(LossModule):
 
     def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Q(x, a) at the data's actions, shape ``[*B]``, with the online parameters (differentiable)."""
-        fast = self._fast()
-        if fast is not None:
-            tensors = [get_entry(tensordict, key, "an input of the value network") for key in self.value_network.in_keys]
-            key = self.tensor_keys.state_action_value
-            return per_sample(fast[0](self.value_network_params, *tensors), tensordict.batch_size, key)
+        batch = tensordict.batch_size
         keys = self._observation_keys if self.discrete else self.value_network.in_keys
-        inputs = self._inputs(tensordict, keys, "an input of the value network")
-        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            outputs = self.value_network(inputs)
+        output = self._call("value_network", self.value_network_params,
+                            self._entries(tensordict, keys, "an input of the value network"), batch)
         if not self.discrete:
-            key = self.tensor_keys.state_action_value
-            return per_sample(get_entry(outputs, key, "the value network's output"), tensordict.batch_size, key)
-        action_value = get_entry(outputs, self.tensor_keys.action_value, "the Q head's output")
+            return per_sample(output, batch, self.tensor_keys.state_action_value)
         action = get_entry(tensordict, self.tensor_keys.action, "the action taken in the data")
-        batch, num_actions = tensordict.batch_size, action_value.shape[-1]
+        num_actions = output.shape[-1]
         if action.shape == (*batch, num_actions):  # one-hot
-            return (action_value * action.to(action_value.dtype)).sum(-1)
+            return (output * action.to(output.dtype)).sum(-1)
         if action.shape in (batch, (*batch, 1)) and not action.is_floating_point():  # indices
             if action.device.type == "cpu" and action.numel():
                 low, high = (int(v) for v in torch.aminmax(action.long()))
@@ -571,77 +520,38 @@ class WeightedBellmanLoss(LossModule):
                         f"Entry {self.tensor_keys.action!r} holds action indices from {low} to {high}; the Q head has "
                         f"{num_actions} actions, so indices must lie in [0, {num_actions - 1}]."
                     )
-            return action_value.gather(-1, action.reshape(*batch, 1).long()).squeeze(-1)
+            return output.gather(-1, action.reshape(*batch, 1).long()).squeeze(-1)
         raise ValueError(
             f"Entry {self.tensor_keys.action!r} has shape {tuple(action.shape)} and dtype {action.dtype}; a Q head "
             f"over {num_actions} actions expects one-hot actions {(*batch, num_actions)} or integer indices "
             f"{tuple(batch)} / {(*batch, 1)}."
         )
 
-    def _actor_action(self, inputs: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
+    def _actor_action(self, tensordict: TensorDictBase, params) -> torch.Tensor:
         """μ(x) with the given actor parameters."""
-        actor_inputs = self._inputs(inputs, self.actor_network.in_keys, "an input of the actor")
-        with params.to_module(self.actor_network, preserve_module_state=False):
-            return self.actor_network(actor_inputs).get(self.tensor_keys.action)
+        inputs = self._entries(tensordict, self.actor_network.in_keys, "an input of the actor")
+        return self._call("actor_network", params, inputs, tensordict.batch_size)
 
     def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad."""
+        """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad.
+
+        The maximiser's :meth:`~torchrl_wbrm.modules.maximisers.ActionMaximiser.maximise` computes it, with Q
+        called through :meth:`_call`."""
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
-        fast = self._fast()
-        if fast is not None:
-            return self._fast_next_state_value(next_td, fast)
-        next_inputs = self._inputs(next_td, self._observation_keys, "a next-state input of the value network")
+        batch = next_td.batch_size
+        observations = self._entries(next_td, self._observation_keys, "a next-state input of the value network")
         actor_action = None
         if self.has_actor:
             with torch.no_grad():  # the value loss never trains the actor
                 actor_action = self._actor_action(next_td, self.target_actor_network_params)
         params = self.target_value_network_params if self.delay_value else self.value_network_params
-        with torch.no_grad() if self.delay_value else nullcontext():
-            with params.to_module(self.value_network, preserve_module_state=False):
-                return self.maximiser(
-                    self.value_network,
-                    next_inputs,
-                    action_key=self.tensor_keys.action,
-                    value_key=self.tensor_keys.action_value if self.discrete else self.tensor_keys.state_action_value,
-                    actor_action=actor_action,
-                )
 
-    def _fast_next_state_value(self, next_td: TensorDictBase, fast) -> torch.Tensor:
-        """:meth:`next_state_value` on tensors: the same candidates (μ'(x'), or the uniform draws then μ'(x')), the
-        same ``[K, *B]`` evaluation of Q and the max over K."""
-        value_call, actor_call = fast
-        action_key = self.tensor_keys.action
-        batch = next_td.batch_size
-        next_inputs = {key: get_entry(next_td, key, "a next-state input of the value network")
-                       for key in self._observation_keys}
-        actor_action = None
-        if actor_call is not None:
-            with torch.no_grad():  # the value loss never trains the actor
-                actor_in = [get_entry(next_td, key, "an input of the actor") for key in self.actor_network.in_keys]
-                actor_action = actor_call(self.target_actor_network_params, *actor_in)
-        params = self.target_value_network_params if self.delay_value else self.value_network_params
+        def q(inputs, batch_shape):
+            return self._call("value_network", params, inputs, batch_shape)
+
         with torch.no_grad() if self.delay_value else nullcontext():
-            if isinstance(self.maximiser, SampledActionMaximiser):
-                m = self.maximiser
-                candidates = uniform_actions(m.low, m.high, m.num_samples, batch)
-                if actor_action is not None:
-                    candidates = torch.cat([candidates, actor_action.unsqueeze(0)], 0)
-            else:
-                if actor_action is None:
-                    raise ValueError("ActorMaximiser needs actor_action = μ(x); build the loss with an actor_network.")
-                # one candidate: Q(x', μ'(x')) itself (the [1, *B] evaluation and its max over one are the same
-                # matrix products on the same rows, and the max of one value is that value)
-                tensors = [actor_action if key == action_key else next_inputs[key] for key in self.value_network.in_keys]
-                return value_call(params, *tensors).squeeze(-1)
-            k = candidates.shape[0]
-            tensors = []
-            for key in self.value_network.in_keys:
-                if key == action_key:
-                    tensors.append(candidates)
-                else:
-                    tensors.append(next_inputs[key].expand(k, *next_inputs[key].shape))
-            values = value_call(params, *tensors).squeeze(-1)  # [K, *B]
-            return values.max(0).values
+            return self.maximiser.maximise(q, observations, batch, action_key=self.tensor_keys.action,
+                                           actor_action=actor_action)
 
     # ---------------------------------------------------------------- input checks
     def _checked_inputs(self, tensordict: TensorDictBase, weight_to_check: torch.Tensor | None = None) -> TensorDictBase:
@@ -718,11 +628,12 @@ class WeightedBellmanLoss(LossModule):
         tensordict = self._checked_inputs(tensordict, weight_to_check)
         q_value = self._chosen_q(tensordict)
         next_value = self.next_state_value(tensordict)
-        target_value = self._td0_target(tensordict, next_value)
+        target_value = self._target(tensordict, next_value)
         return q_value, per_sample(target_value, tensordict.batch_size, _next(self.tensor_keys.reward))
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The weighted Bellman residual (:func:`weighted_bellman_residual`); returns ``(loss, diagnostics)``.
+        """The weighted Bellman residual (:func:`~torchrl_wbrm.objectives.functional.weighted_bellman_residual`);
+        returns ``(loss, diagnostics)``.
 
         The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
         """
@@ -744,7 +655,7 @@ class WeightedBellmanLoss(LossModule):
             reduction=self.reduction,
         )
         with torch.no_grad():
-            td_error = q_value - target_value
+            td_error = bellman_residual(q_value, target_value)
             diagnostics = {
                 "td_error": td_error.pow(2),
                 "td_error_mean": td_error.mean(),
@@ -754,7 +665,7 @@ class WeightedBellmanLoss(LossModule):
             }
             if self.use_weights:
                 diagnostics["weight_mean"] = weight.mean()
-                diagnostics["weight_ess"] = weight.sum().pow(2) / weight.pow(2).sum()
+                diagnostics["weight_ess"] = effective_sample_size(weight)
         return loss, diagnostics
 
     def _reads_priority(self, tensordict: TensorDictBase) -> bool:
@@ -813,21 +724,12 @@ class WeightedBellmanLoss(LossModule):
         if not self.has_actor:
             raise ValueError("actor_loss needs an actor_network; this loss was built without one.")
         key = self.tensor_keys.state_action_value
-        fast = self._fast()
-        if fast is not None:
-            value_call, actor_call = fast
-            actor_in = [get_entry(tensordict, k, "an input of the actor") for k in self.actor_network.in_keys]
-            mu = actor_call(self.actor_network_params, *actor_in)
-            q_in = [mu if k == self.tensor_keys.action else get_entry(tensordict, k, "an input of the value network")
-                    for k in self.value_network.in_keys]
-            q_actor = per_sample(value_call(self.value_network_params, *q_in, detach=True), tensordict.batch_size, key)
-        else:
-            mu = self._actor_action(tensordict, self.actor_network_params)
-            q_inputs = self._inputs(tensordict, self._observation_keys, "an input of the value network")
-            q_inputs.set(self.tensor_keys.action, mu)
-            with self.value_network_params.detach().to_module(self.value_network, preserve_module_state=False):
-                q_outputs = self.value_network(q_inputs)
-            q_actor = per_sample(get_entry(q_outputs, key, "the value network's output"), tensordict.batch_size, key)
+        batch = tensordict.batch_size
+        mu = self._actor_action(tensordict, self.actor_network_params)
+        q_inputs = self._entries(tensordict, self._observation_keys, "an input of the value network")
+        q_inputs[self.tensor_keys.action] = mu
+        q_actor = per_sample(self._call("value_network", self.value_network_params, q_inputs, batch, detach=True),
+                             batch, key)
         per_sample_loss = -q_actor
         diagnostics = {"actor_q_mean": q_actor.detach().mean()}
         if self.bc_alpha is not None:
@@ -838,8 +740,7 @@ class WeightedBellmanLoss(LossModule):
                     f"{tuple(mu.shape)}."
                 )
             bc = (mu - action).pow(2).reshape(*tensordict.batch_size, -1).mean(-1)
-            lmbd = self.bc_alpha / q_actor.abs().mean().detach().clamp_min(1e-6)
-            per_sample_loss = lmbd * per_sample_loss + bc
+            per_sample_loss = td3bc_lambda(self.bc_alpha, q_actor) * per_sample_loss + bc
             diagnostics["bc_loss"] = bc.detach().mean()
         if self.weight_actor_loss:
             per_sample_loss = per_sample_loss * self._weight(tensordict)

@@ -9,9 +9,9 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
-from torchrl.objectives.utils import _reduce
 
-from torchrl_wbrm.objectives._utils import check_reduction, check_sign, get_entry, per_sample
+from torchrl_wbrm.objectives._utils import check_reduction, per_sample
+from torchrl_wbrm.objectives.functional import effective_sample_size, per_sample_weight, weighted_reduce
 
 __all__ = ["NATIVE_PRIORITY_WEIGHT_LOSSES", "WeightedLoss", "reads_priority_weight"]
 
@@ -61,10 +61,16 @@ def _is_loss_term(key) -> bool:
 class WeightedLoss(LossModule):
     r"""Any TorchRL loss whose terms are per sample, reduced as a ŵ-weighted mean ``Σ wᵢ lᵢ / Σ wᵢ``.
 
-    The wrapped ``loss`` is built with ``reduction="none"``, so that each of its ``"loss"`` / ``"loss_*"`` entries
-    holds one value per sample, ``lᵢ``. :class:`WeightedLoss` reads the per-sample weight ``wᵢ`` from the batch
-    (``"density_ratio"``, e.g. the stage-1 ŵ stored by :func:`~torchrl_wbrm.ratio.store_density_ratio`) and reduces
-    every such entry the way TorchRL reduces a ``"priority_weight"``: ``Σ wᵢ lᵢ / Σ wᵢ`` (``reduction="mean"``),
+    The wrapped ``loss`` may be built with any reduction (TorchRL's default ``"mean"`` included):
+    :class:`WeightedLoss` sets its ``reduction`` to ``"none"`` (TorchRL reads ``self.reduction`` when the loss
+    reduces its terms, at every ``forward``), so that each of its ``"loss"`` / ``"loss_*"`` entries holds one value
+    per sample, ``lᵢ``; the wrapped loss keeps that setting afterwards. Where such a loss has a
+    ``scalar_output_mode`` left unset, it becomes ``"exclude"`` (what TorchRL picks for ``reduction="none"``: the
+    scalars ``"alpha"`` and ``"entropy"`` are left out of the output). :class:`WeightedLoss` reads the per-sample
+    weight ``wᵢ`` from the batch (``"density_ratio"``, e.g. the stage-1 ŵ stored by
+    :func:`~torchrl_wbrm.ratio.store_density_ratio`; :func:`~torchrl_wbrm.objectives.functional.per_sample_weight`)
+    and reduces every such entry the way TorchRL reduces a ``"priority_weight"``
+    (:func:`~torchrl_wbrm.objectives.functional.weighted_reduce`): ``Σ wᵢ lᵢ / Σ wᵢ`` (``reduction="mean"``),
     ``Σ wᵢ lᵢ`` (``"sum"``) or ``wᵢ lᵢ`` (``"none"``). An entry with event dimensions past the batch (``BCLoss``'s
     elementwise ``[B, action_dim]``) is first averaged (summed, for ``"sum"``) over them, as the wrapped loss's own
     ``"mean"`` (``"sum"``) would. With constant weights the result is the unwrapped loss; with 0/1 weights it is the
@@ -101,8 +107,9 @@ class WeightedLoss(LossModule):
     them.
 
     Args:
-        loss (LossModule): the TorchRL loss, built with ``reduction="none"`` (for ``IQLLoss``, ``CQLLoss`` and
-            ``SACLoss`` also ``scalar_output_mode="exclude"`` or ``"non_tensor"`` to silence their warning).
+        loss (LossModule): the TorchRL loss, with any ``reduction``: it is switched to ``"none"`` here. (Built with
+            ``reduction="none"``, ``IQLLoss``, ``CQLLoss`` and ``SACLoss`` also want ``scalar_output_mode="exclude"``
+            or ``"non_tensor"`` to silence their warning; built with the default, they need nothing.)
 
     Keyword Args:
         weight_key (NestedKey): where the per-sample weight is read (shape ``[*B]`` or ``[*B, 1]``, finite,
@@ -130,8 +137,10 @@ class WeightedLoss(LossModule):
         >>> actor = make_tanh_normal_actor(2, spec, num_cells=(16,))
         >>> qvalue = make_q_network(2, 1, num_cells=(16,), initial_bias=0.0)
         >>> value = ValueOperator(MLP(in_features=2, out_features=1, num_cells=(16,)), in_keys=["observation"])
-        >>> iql = IQLLoss(actor, qvalue, value, reduction="none", scalar_output_mode="exclude")
-        >>> loss = WeightedLoss(iql, weight_key="density_ratio")
+        >>> loss = WeightedLoss(IQLLoss(actor, qvalue, value), weight_key="density_ratio")
+        >>> loss.loss_module.reduction  # the wrapped loss gives per-sample terms
+        'none'
+
         >>> loss.make_value_estimator(gamma=0.9)
         >>> updater = SoftUpdate(loss, tau=0.005)
         >>> n = 8
@@ -186,11 +195,7 @@ class WeightedLoss(LossModule):
                 f"{name} has no 'reduction' setting, so its terms cannot be computed per sample; WeightedLoss needs a "
                 "loss that supports reduction='none'."
             )
-        if loss.reduction != "none":
-            raise ValueError(
-                f"WeightedLoss needs the per-sample terms of {name}: build it with reduction='none' (got "
-                f"reduction={loss.reduction!r}); WeightedLoss(reduction=...) then reduces them with the weights."
-            )
+        check_reduction(loss.reduction)
         if name == "CQLLoss" and getattr(loss, "with_lagrange", False):
             raise ValueError(
                 "CQLLoss(with_lagrange=True) has a batch-level term, 'loss_alpha_prime' (the Lagrange multiplier's "
@@ -213,6 +218,9 @@ class WeightedLoss(LossModule):
         self.native_priority_weight = reads_priority_weight(loss)
         self.batch_coupled_terms = dict(_BATCH_COUPLED_TERMS.get(name, {}))
         loss.use_prioritized_weights = False  # the product ŵ·p is applied here, once
+        loss.reduction = "none"  # per-sample terms: TorchRL's losses read self.reduction when they reduce
+        if hasattr(loss, "scalar_output_mode") and loss.scalar_output_mode is None:
+            loss.scalar_output_mode = "exclude"  # TorchRL's choice for reduction="none" (its warning's default)
         inner_priority = getattr(getattr(loss, "tensor_keys", None), "priority_weight", None)
         keys = {"weight": weight_key}
         if inner_priority is not None:
@@ -222,7 +230,7 @@ class WeightedLoss(LossModule):
     # ---------------------------------------------------------------- the wrapped loss
     @property
     def loss_module(self) -> LossModule:
-        """The wrapped loss (built with ``reduction="none"``)."""
+        """The wrapped loss (its ``reduction`` set to ``"none"``)."""
         return self.__dict__["_wrapped"]
 
     def __getattr__(self, item):
@@ -283,23 +291,16 @@ class WeightedLoss(LossModule):
         non-negative and not all zero (CPU tensors)."""
         batch = tensordict.batch_size
         key = self.tensor_keys.weight
-        weight = get_entry(tensordict, key, "the per-sample weight of WeightedLoss: store it there (e.g. "
-                           "store_density_ratio(buffer, ratio_network=..., key=...)) or set_keys(weight=...)")
-        weight = per_sample(weight, batch, key).detach()
-        if weight.is_complex():
-            raise TypeError(f"Entry {key!r} has dtype {weight.dtype}; expected real, non-negative weights.")
-        if not weight.is_floating_point():  # integer or bool weights (counts, 0/1 masks) are taken as they are
-            weight = weight.to(torch.get_default_dtype())
-        check_sign(weight, key, strictly_positive=False)
-        source = repr(key)
         priority_key = self.tensor_keys.priority_weight
-        if self.use_prioritized_weights in (True, "auto") and priority_key != key:
-            priority = tensordict.get(priority_key, None)
-            if priority is not None:
-                priority = per_sample(priority, batch, priority_key).detach()
-                check_sign(priority, priority_key, strictly_positive=False)
-                weight = weight * priority.to(weight.dtype)
-                source = f"{key!r} times {priority_key!r}"
+        reads_priority = self.use_prioritized_weights in (True, "auto") and priority_key != key
+        weight = per_sample_weight(
+            tensordict, key, priority_key if reads_priority else None,
+            why="the per-sample weight of WeightedLoss: store it there (e.g. store_density_ratio(buffer, "
+                "ratio_network=..., key=...)) or set_keys(weight=...)",
+        )
+        source = repr(key)
+        if reads_priority and tensordict.get(priority_key, None) is not None:
+            source = f"{key!r} times {priority_key!r}"
         mask_keys = getattr(self.loss_module, "_loss_mask_keys", None)
         for mask_key in mask_keys() if callable(mask_keys) else ():  # torchrl's validity masks: weight 0 where False
             mask = tensordict.get(mask_key, None)
@@ -336,12 +337,11 @@ class WeightedLoss(LossModule):
         for key in terms.keys():
             if _is_loss_term(key):
                 value = self._per_sample(terms.get(key), key, batch)
-                w = weight.to(value.dtype)
-                out.set(key, _reduce(value, reduction=self.reduction, weights=w))
+                out.set(key, weighted_reduce(value, weight.to(value.dtype), self.reduction))
             elif terms.is_non_tensor(key):
                 out.set_non_tensor(key, terms.get_non_tensor(key))
             else:
                 out.set(key, terms.get(key))
         with torch.no_grad():
-            out.set("weight_ess", weight.sum().pow(2) / weight.pow(2).sum())
+            out.set("weight_ess", effective_sample_size(weight))
         return out

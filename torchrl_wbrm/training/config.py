@@ -133,8 +133,6 @@ class QConfig:
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations (null: the env's).
-        compile: compile the value and actor losses with ``torch.compile`` (wbrm, brm, fqi; the inductor cache goes
-            to ``<run dir>/torch_compile_cache``, the compile time to ``results.json``'s ``compile_seconds``).
     """
 
     residual: str = "squared"
@@ -166,7 +164,6 @@ class QConfig:
     init_bias: bool = True
     holdout_fraction: float = 0.1
     eval_every: Optional[int] = None
-    compile: bool = False
 
 
 @dataclass

@@ -303,8 +303,6 @@ class WBRMTrainer:
             observation_scale=scale,
             task=self.task,
         )
-        if qc.compile:  # torch.compile's inductor cache inside the run directory
-            os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(self.run_dir / "torch_compile_cache")
         self.algo: Algo = build_algo(self.cfg.algo, context)
         self.schedulers = {}
         if qc.lr_schedule == "cosine":  # every optimiser annealed over the step budget, stepped once per trainer step
@@ -659,9 +657,6 @@ class WBRMTrainer:
             "data_seconds": self.data_seconds,
             "config": config_as_dict(self.cfg),
         }
-        compiled = getattr(self.algo.step, "compiled", None)
-        if compiled is not None:  # q.compile: the first compiled steps' wall time, compilation included
-            results["compile_seconds"] = compiled.compile_seconds
         if self.ratio_network is not None and ratio_records:
             best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
             if best:
