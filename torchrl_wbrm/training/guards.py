@@ -14,6 +14,8 @@
   stage, the step and the figure.
 * :class:`StopSignals` — SIGINT and SIGTERM end the run at the next step boundary, after a checkpoint.
 * :func:`json_safe` — NaN and ±inf become ``null``, so ``results.json`` stays valid JSON.
+* :func:`atomic_write` — checkpoints and JSON files are written to a temporary file, fsynced and renamed over the
+  old one: a run killed at any point (SIGKILL included) leaves no half-written file.
 """
 from __future__ import annotations
 
@@ -510,14 +512,66 @@ def json_safe(obj):
     return obj
 
 
+#: The test hook's environment variable (:func:`pause_for_test`); outside tests it is unset and the hook does nothing.
+TEST_PAUSE_ENV = "TORCHRL_WBRM_TEST_PAUSE_AT"
+#: How many times this process has replaced each file name (:func:`atomic_write`), for the hook's ``<name>:<n>``.
+_REPLACED: dict[str, int] = {}
+
+
+def pause_for_test(point: str) -> None:
+    """Test hook for kill tests: when the environment variable :data:`TEST_PAUSE_ENV` equals ``point``, print
+    ``TORCHRL_WBRM_TEST_PAUSE_AT: paused at <point>`` on stderr and wait (for the test to kill the process).
+
+    Points: ``<stage>:<step>`` after a training step (``ratio:15``, ``q:25``), and ``<file name>:<n>`` inside the
+    n-th :func:`atomic_write` of that file in this process, after the new content is on disk in the temporary file and
+    before it replaces the file (``checkpoint.pt:4``, ``results.json:1``). Unset, the hook does nothing."""
+    if os.environ.get(TEST_PAUSE_ENV) != point:
+        return
+    import sys
+    import time
+
+    print(f"{TEST_PAUSE_ENV}: paused at {point}", file=sys.stderr, flush=True)
+    while True:
+        time.sleep(60)
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (where the platform lets a directory be opened and synced)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
+    """Replace ``path`` with what ``write(file)`` writes, atomically: the content goes to ``tmp`` (default
+    ``<path>.tmp``, in the same directory), is flushed and fsynced, then renamed over ``path`` (``os.replace``) and
+    the directory synced. A process killed at any point leaves either the old ``path`` or the new one complete, never
+    a half-written one (at most a stale temporary file, which the next write replaces)."""
+    path = Path(path)
+    tmp = Path(tmp) if tmp is not None else path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    _REPLACED[path.name] = _REPLACED.get(path.name, 0) + 1
+    pause_for_test(f"{path.name}:{_REPLACED[path.name]}")
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
 def write_json(path: Path, obj) -> None:
-    """Write ``obj`` as strict JSON (``allow_nan=False`` after :func:`json_safe`), atomically."""
+    """Write ``obj`` as strict JSON (``allow_nan=False`` after :func:`json_safe`), atomically (:func:`atomic_write`)."""
     import json
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(json_safe(obj), indent=2, default=float, allow_nan=False))
-    os.replace(tmp, path)
+    text = json.dumps(json_safe(obj), indent=2, default=float, allow_nan=False)
+    atomic_write(path, lambda f: f.write(text.encode()))
 
 
 def _leaves(node, prefix: str = ""):

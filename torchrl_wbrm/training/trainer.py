@@ -53,6 +53,7 @@ from torchrl_wbrm.training.guards import (
     StopNow,
     StopSignals,
     TrainingDiverged,
+    atomic_write,
     changed_keys,
     check_run_dir,
     check_run_request,
@@ -60,6 +61,7 @@ from torchrl_wbrm.training.guards import (
     first_non_finite,
     json_safe,
     non_finite_parameter,
+    pause_for_test,
     take_claim,
     write_json,
 )
@@ -379,6 +381,7 @@ class WBRMTrainer:
                 if ckpt_every and step % ckpt_every == 0 and step != stop:
                     self.save_checkpoint()
                 bar.update(1)
+                pause_for_test(f"{name}:{step}")  # the kill tests' hook; nothing unless its variable is set
                 if self._stop is not None and self._stop.received is not None:
                     self.save_checkpoint()
                     raise RunInterrupted(self._stop.received, name, step, self.run_dir)
@@ -708,9 +711,8 @@ class WBRMTrainer:
         bad = non_finite_parameter(self.q_loss, self.ratio_loss if self.ratio_network is not None else None)
         if bad is not None:
             raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
-        tmp = path.with_suffix(".tmp")
-        torch.save(self.state_dict(), tmp)
-        os.replace(tmp, path)
+        state = self.state_dict()
+        atomic_write(path, lambda f: torch.save(state, f), tmp=path.with_suffix(".tmp"))  # fsynced, then renamed
         self._checkpoint_state = dict(self.state)
         return path
 
