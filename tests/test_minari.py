@@ -24,13 +24,8 @@ from torchrl_wbrm.data.minari_data import (
     transitions_to_episodes,
     write_minari_dataset,
 )
-from torchrl_wbrm.data.minari_examples import (
-    PENDULUM,
-    cartpole_expert_action,
-    collect_gym_episodes,
-    make_cartpole_datasets,
-    pendulum_expert_action,
-)
+from torchrl_wbrm.data.minari_examples import PENDULUM, collect_gym_episodes, make_cartpole_datasets
+from torchrl_wbrm.policies.gym_experts import cartpole_expert_action, pendulum_expert_action
 
 #: the tiny uint8 "image" env's id (an observation of shape (3, 4), a Discrete(2) action)
 IMAGE_ENV = "torchrl_wbrm_tests/TinyImage-v0"
@@ -206,7 +201,7 @@ def test_multidimensional_box_action_read_flat_and_reshaped_for_the_env(tmp_path
     """Pendulum-v1 with its Box action reshaped to (1, 1): the data's actions are read flat, (N, 1); the evaluation
     env takes the policy's flat action and steps gym with it reshaped back, so the swing-up heuristic scores there
     what it scored in the data; an env whose action space is not the datasets' is refused, naming both."""
-    from torchrl_wbrm.data.minari_examples import collect_gym_episodes, pendulum_expert_action, register_reshaped_env
+    from torchrl_wbrm.data.minari_examples import register_reshaped_env
 
     env_id = register_reshaped_env("Pendulum-v1", action_shape=(1, 1))
     assert gym.make(env_id).action_space.shape == (1, 1)

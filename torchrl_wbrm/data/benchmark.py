@@ -1,7 +1,8 @@
 """A benchmark of offline datasets made here, in Minari format: standard gymnasium tasks, each with an expert and a
 behaviour dataset, and the returns of random actions and of the expert as the datasets' reference scores.
 
-Nothing is downloaded: every expert is a hand-made controller. Every task is built the same way:
+Nothing is downloaded: every expert is a hand-made controller (:mod:`torchrl_wbrm.policies.gym_experts`). Every
+task is built the same way:
 
 * **expert** (``<namespace>/<task>/expert-v0``): the controller with Gaussian action noise of standard deviation
   ``0.05 × (high − low)`` (5% of the action range), clipped to the action box;
@@ -42,14 +43,18 @@ from typing import Callable
 import numpy as np
 
 from torchrl_wbrm.data.minari_data import minari_data_root, write_minari_dataset
-from torchrl_wbrm.data.minari_examples import collect_gym_episodes, pendulum_expert_action
+from torchrl_wbrm.data.minari_examples import collect_gym_episodes
+from torchrl_wbrm.policies.gym_experts import (
+    inverted_pendulum_expert_action,
+    lunar_lander_expert_action,
+    mountain_car_expert_action,
+    pendulum_expert_action,
+)
 
 __all__ = [
     "BENCHMARK_TASKS",
     "BenchmarkTask",
     "benchmark_ids",
-    "inverted_pendulum_expert_action",
-    "lunar_lander_expert_action",
     "make_benchmark",
     "make_benchmark_task",
     "normalised_score",
@@ -57,27 +62,6 @@ __all__ = [
 
 #: the Minari namespace of the benchmark's datasets
 NAMESPACE = "benchmark"
-
-
-def lunar_lander_expert_action(observation: np.ndarray) -> np.ndarray:
-    """gymnasium's own ``heuristic`` for the continuous lunar lander (main engine, then the lateral engines)."""
-    from types import SimpleNamespace
-
-    from gymnasium.envs.box2d.lunar_lander import heuristic
-
-    env = SimpleNamespace(unwrapped=SimpleNamespace(continuous=True))
-    return np.asarray(heuristic(env, np.asarray(observation, dtype=np.float64)), dtype=np.float32)
-
-
-#: the PD gains of :func:`inverted_pendulum_expert_action` on ``[x, θ, ẋ, θ̇]``
-INVERTED_PENDULUM_GAINS = np.array([1.0, 10.0, 1.0, 1.0])
-
-
-def inverted_pendulum_expert_action(observation: np.ndarray) -> np.ndarray:
-    """A PD controller for ``InvertedPendulum-v5``: force ``k · [x, θ, ẋ, θ̇]`` with ``k = (1, 10, 1, 1)``, which
-    holds the pole for the full 1000 steps from every start tried, clipped to ``[−3, 3]``."""
-    force = float(INVERTED_PENDULUM_GAINS @ np.asarray(observation, dtype=np.float64).reshape(-1)[:4])
-    return np.clip(np.array([force], dtype=np.float32), -3.0, 3.0)
 
 
 @dataclass(frozen=True)
@@ -107,9 +91,7 @@ BENCHMARK_TASKS: dict[str, BenchmarkTask] = {
     task.name: task for task in (
         BenchmarkTask("pendulum", "Pendulum-v1", pendulum_expert_action, 100, 300,
                       "energy-pumping swing-up with a PD catch near the top"),
-        BenchmarkTask("mountain_car", "MountainCarContinuous-v0",
-                      lambda obs: np.array([0.9 if float(np.asarray(obs).reshape(-1)[1]) > 0 else -0.9],
-                                           dtype=np.float32), 100, 100,
+        BenchmarkTask("mountain_car", "MountainCarContinuous-v0", mountain_car_expert_action, 100, 100,
                       "0.9 sign(velocity)"),
         BenchmarkTask("lunar_lander", "LunarLanderContinuous-v3", lunar_lander_expert_action, 100, 300,
                       "gymnasium's lunar_lander.heuristic (continuous)", requires="box2d"),

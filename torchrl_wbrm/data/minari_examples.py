@@ -1,4 +1,5 @@
-"""Small Minari datasets on gymnasium classic-control envs, made locally: an expert heuristic and a behaviour mix.
+"""Small Minari datasets on gymnasium classic-control envs, made locally: an expert heuristic
+(:mod:`torchrl_wbrm.policies.gym_experts`) and a behaviour mix.
 
 ``MountainCarContinuous-v0`` (:func:`make_mountain_car_datasets`): the expert pushes along the velocity
 (``0.9 sign(v) + 0.1 U(−1, 1)``, about +93.5 in about 80 steps); the behaviour is whole episodes of uniform random
@@ -6,13 +7,14 @@ actions (about −33 over the 999-step limit) and whole episodes of the expert w
 
 ``Pendulum-v1`` (:func:`make_pendulum_datasets`) (Box observation ``[cos θ, sin θ, θ̇]``, Box action ``[-2, 2]``, 200-step episodes):
 
-* expert — an energy-pumping swing-up with a PD catch near the top (:func:`pendulum_expert_action`; about −140
-  per episode, against about −1,180 for uniform random torques), plus a little action noise;
+* expert — an energy-pumping swing-up with a PD catch near the top
+  (:func:`~torchrl_wbrm.policies.gym_experts.pendulum_expert_action`; about −140 per episode, against about −1,180 for
+  uniform random torques), plus a little action noise;
 * behaviour — whole episodes of uniform random torques, and whole episodes of the expert with more noise.
 
 ``CartPole-v1`` (:func:`make_cartpole_datasets`) (Box observation, ``Discrete(2)`` action, 500-step limit): the
-expert pushes towards the pole's lean, ``1 if θ + 0.5 θ̇ > 0 else 0`` (:func:`cartpole_expert_action`; 500, the
-maximum, from every start tried), taking a uniform random action with probability 0.05; the behaviour is whole
+expert pushes towards the pole's lean, ``1 if θ + 0.5 θ̇ > 0 else 0``
+(:func:`~torchrl_wbrm.policies.gym_experts.cartpole_expert_action`; 500, the maximum, from every start tried), taking a uniform random action with probability 0.05; the behaviour is whole
 episodes of uniform random actions (about 22) and whole episodes of the expert taking a random action with
 probability 0.5 (about 170).
 
@@ -41,14 +43,12 @@ from typing import Callable
 import numpy as np
 
 from torchrl_wbrm.data.minari_data import check_new_minari_ids, write_minari_dataset
+from torchrl_wbrm.policies.gym_experts import cartpole_expert_action, mountain_car_expert_action, pendulum_expert_action
 
 __all__ = [
-    "pendulum_expert_action",
-    "mountain_car_expert_action",
     "collect_gym_episodes",
     "make_pendulum_datasets",
     "make_mountain_car_datasets",
-    "cartpole_expert_action",
     "make_cartpole_datasets",
     "make_reshaped_env",
     "register_reshaped_env",
@@ -63,30 +63,6 @@ NAMESPACE = "examples"
 PENDULUM = "Pendulum-v1"
 MOUNTAIN_CAR = "MountainCarContinuous-v0"
 CARTPOLE = "CartPole-v1"
-
-
-def pendulum_expert_action(observation: np.ndarray) -> np.ndarray:
-    """Swing-up heuristic for ``Pendulum-v1``: pump energy ``½θ̇² + 15 cos θ`` towards the upright's 15 at full
-    torque, and catch with ``−(12θ + 2.5θ̇)`` once ``cos θ > 0.85``."""
-    c, s, w = (float(v) for v in np.asarray(observation).reshape(-1)[:3])
-    theta = np.arctan2(s, c)
-    if c > 0.85:
-        u = -(12.0 * theta + 2.5 * w)
-    else:
-        u = 2.0 * np.sign((15.0 - (0.5 * w * w + 15.0 * c)) * w + 1e-6)
-    return np.clip(np.array([u], dtype=np.float32), -2.0, 2.0)
-
-
-def mountain_car_expert_action(observation: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-    """``clip(0.9 sign(v) + noise U(−1, 1), −1, 1)`` for ``MountainCarContinuous-v0`` (left at rest)."""
-    direction = 1.0 if float(np.asarray(observation).reshape(-1)[1]) > 0 else -1.0
-    return np.clip(np.array([0.9 * direction + noise * rng.uniform(-1.0, 1.0)], dtype=np.float32), -1.0, 1.0)
-
-
-def cartpole_expert_action(observation: np.ndarray) -> int:
-    """``1`` (push right) if ``θ + 0.5 θ̇ > 0``, else ``0``, for ``CartPole-v1`` (any shape of its 4 numbers)."""
-    _, _, theta, omega = (float(v) for v in np.asarray(observation).reshape(-1)[:4])
-    return int(theta + 0.5 * omega > 0)
 
 
 def make_reshaped_env(env_id: str, shape=None, action_shape=None, **kwargs):
