@@ -3,10 +3,10 @@ directory, dated directories of one second, a saved dataset behind the data cach
 the final evaluation, ``overwrite=true`` and old logs, refused commands that must change nothing on disk, config
 errors that must name their key, and resumes that must leave no stray directory.
 
-    python benchmarks/reliability_probes.py                  # every probe (about 3 minutes on 2 cores)
-    python benchmarks/reliability_probes.py --fast           # the ones that take a few seconds each
-    python benchmarks/reliability_probes.py --only sigint_during_final_evaluation
-    python benchmarks/reliability_probes.py --list
+    python tools/reliability_probes.py                  # every probe (about 3 minutes on 2 cores)
+    python tools/reliability_probes.py --fast           # the ones that take a few seconds each
+    python tools/reliability_probes.py --only sigint_during_final_evaluation
+    python tools/reliability_probes.py --list
 
 Each probe runs ``python recipes/wbrm_offline.py`` (and ``recipes/make_dataset.py``) in subprocesses in a fresh
 temporary folder and checks exit codes, messages and files; one line per probe, ``PASS`` or ``FAIL`` with what was
