@@ -1,7 +1,8 @@
 """Reading a checkpoint never runs code: ``checkpoint.pt`` is read with ``torch.load(weights_only=True)``.
 
 A crafted pickle in a run directory that otherwise looks like a real run is refused, in one line naming the file,
-by the trainer and by the recipe, and what its unpickling would do (create a marker file) never happens. A real
+by the trainer and by the recipe, and what its unpickling would do (create a marker file) never happens; so is a
+run record (``.hydra/overrides.yaml``) that names anything but the recipe's own settings. A real
 checkpoint (every algo's) holds only what such a load accepts, and resumes exactly; so does one whose NumPy random
 state is the array ``np.random.get_state()`` returns.
 """
@@ -109,6 +110,31 @@ def test_a_crafted_checkpoint_is_refused_by_the_recipe_in_one_line(finished, tmp
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not marker.exists()
     assert not (tmp_path / "outputs").exists()  # a refused command writes nothing
+
+
+@pytest.mark.parametrize("override", [
+    "+hydra.callbacks.payload={_target_:builtins.open,_args_:['MARKER','w']}",
+    "++hydra.callbacks.payload._target_=builtins.open",
+    "~hydra.callbacks.run_dir_guard",
+])
+def test_a_run_record_naming_more_than_the_recipes_settings_is_refused(finished, tmp_path, override):
+    """``resume=X`` re-applies ``X/.hydra/overrides.yaml``: an entry Hydra would instantiate (a callback's
+    ``_target_``, here ``builtins.open(MARKER, 'w')``, which creates the file) or that removes the run's guard is
+    refused in one line before Hydra sees it, and nothing is created."""
+    marker = tmp_path / "marker"
+    run = tmp_path / "run"
+    shutil.copytree(finished, run)
+    (run / ".hydra").mkdir()
+    record = run / ".hydra" / "overrides.yaml"
+    record.write_text(f'- "{override.replace("MARKER", str(marker))}"\n- q.steps=40\n')
+    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), f"resume={run}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode != 0
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert f"Cannot resume: {record} holds the override " in lines[0] and "not a setting of this recipe" in lines[0]
+    assert not marker.exists()
 
 
 def test_a_damaged_checkpoint_is_still_named_as_damaged(finished, tmp_path):

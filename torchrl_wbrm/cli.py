@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.data.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs, validate_config
-from torchrl_wbrm.training.guards import RunInterrupted, write_json
+from torchrl_wbrm.training.guards import RunInterrupted, check_run_record, write_json
 from torchrl_wbrm.training.logging import make_logger
 from torchrl_wbrm.training.reporting import summarise
 
@@ -57,6 +57,7 @@ def with_run_overrides(args: list[str]) -> list[str]:
         return list(args)
     keys = {_override_key(a) for a in args}
     saved = [str(o) for o in OmegaConf.load(record) or []]
+    check_run_record(record, saved)  # only the recipe's own settings: nothing for Hydra to instantiate
     return [*(o for o in saved if _override_key(o) not in keys and _override_key(o) not in NOT_RESUMED), *args]
 
 
@@ -77,7 +78,10 @@ def wbrm_offline() -> None:
     from torchrl_wbrm.training import guards
 
     guards.RESUME_COMMAND = recipe_command()
-    sys.argv[1:] = with_run_overrides(sys.argv[1:])
+    try:
+        sys.argv[1:] = with_run_overrides(sys.argv[1:])
+    except ValueError as err:  # a run record holding more than the recipe's settings: one line, nothing applied
+        raise SystemExit(f"Refused (nothing was written): {err}") from None
     _wbrm_offline_app()
 
 

@@ -389,6 +389,27 @@ def read_checkpoint(path: Path) -> dict:
     return sd
 
 
+def check_run_record(record: Path, overrides: list[str]) -> None:
+    """Refuse a run's Hydra record (``.hydra/overrides.yaml``, re-applied by ``resume=``) holding an override that is
+    not a setting of the recipe's own config (:class:`~torchrl_wbrm.training.config.WBRMConfig`): a record Hydra wrote
+    holds only those (``env=lqr_exp3``, ``q.lr=0.003``; Hydra's own settings go to ``hydra.yaml``). Anything else,
+    such as a ``hydra.callbacks`` entry whose ``_target_`` Hydra would import and call, is refused before Hydra sees
+    it: a resume never runs what a file in the run directory names."""
+    from dataclasses import fields
+
+    from torchrl_wbrm.training.config import WBRMConfig
+
+    settings = {f.name for f in fields(WBRMConfig)}
+    for override in overrides:
+        key = override.split("=", 1)[0].lstrip("+~")
+        if "=" not in override or key.split(".", 1)[0].split("/", 1)[0] not in settings:
+            raise ValueError(
+                f"Cannot resume: {record} holds the override {override!r}, which is not a setting of this recipe "
+                f"(a run's record holds only its own settings, such as env=lqr_exp3 or q.lr=0.003); nothing in it was "
+                f"applied."
+            )
+
+
 def _flatten(node, prefix: str = "") -> dict:
     if isinstance(node, dict):
         out = {}
