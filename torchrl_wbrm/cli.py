@@ -95,6 +95,8 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     start = time.perf_counter()
     validate_config(OmegaConf.to_object(cfg))  # every value, before any data are collected
     run_dir = Path(cfg.resume) if cfg.resume else Path(HydraConfig.get().runtime.output_dir)
+    if cfg.seeds:
+        return _run_seeds(cfg, run_dir)
     try:
         trainer = WBRMTrainer(cfg, run_dir, logger=None, resume=bool(cfg.resume))
         trainer.logger = make_logger(
@@ -120,6 +122,28 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
         sys.exit(2)
     print(summarise(results))
     print(f"run directory: {run_dir}")
+
+
+def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
+    """``seeds=[...]``: the seeds trained together in one process (:func:`torchrl_wbrm.training.seeds.run_seeds`), each
+    in ``run_dir/seed<s>``; ``run_dir/results.json`` holds them all and the aggregate."""
+    from torchrl_wbrm.training.seeds import run_seeds, summarise_seeds
+
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    loggers = {int(s): make_logger(cfg.logger, run_dir / f"seed{s}", f"wbrm_{cfg.env.name}_seed{s}",
+                                   {**resolved, "seed": int(s), "seeds": None}) for s in cfg.seeds}
+    try:
+        results = run_seeds(cfg, run_dir, loggers=loggers)
+    except KeyboardInterrupt:
+        print(f"Interrupted; a multi-seed run writes no checkpoint: run it again ({run_dir}).", file=sys.stderr)
+        sys.exit(130)
+    print(summarise_seeds(results))
+    print(f"run directory: {run_dir}")
+    if results["seeds_diverged"]:
+        for run in results["runs"]:
+            if run.get("status") == "diverged":
+                print(f"seed {run['seed']}: {run['diverged']['message']}", file=sys.stderr)
+        sys.exit(2)
 
 
 def refuse(err: Exception, command: str) -> None:

@@ -236,6 +236,11 @@ class WBRMConfig:
             expert's actions in S^e with torchrl's ``BCLoss``, a reference) or a baseline on D.
         ratio: stage 1. q: stage 2 (and the shared settings of every algo). baselines: per-baseline settings. eval: evaluation. logger: logging (group ``logger``).
         seed: seeds data, initialisation and sampling.
+        seeds: several seeds of this config trained together in one process (``seeds=[0,1,2,3,4]``; ``None``: the
+            one run of ``seed``). Each seed gets the data, initialisation, draws and evaluation of a separate run
+            with that seed, in ``<run dir>/seed<s>``; ``wbrm``, ``brm`` and ``fqi`` are vectorised over the seeds
+            (:mod:`torchrl_wbrm.training.seeds`), other algos train them one at a time. The run directory's
+            ``results.json`` holds every seed's results and their mean and 95% CI. Not resumable.
         device: torch device.
         threads: torch threads (default 1, as the recipe: sweeps run runs side by side; ``None``: torch's default).
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
@@ -258,6 +263,7 @@ class WBRMConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = 0
+    seeds: Optional[List[int]] = None
     device: str = "cpu"
     threads: Optional[int] = 1
     checkpoint_every: int = 1000
@@ -438,6 +444,13 @@ def validate_config(cfg) -> None:
             spec.validate(getattr(cfg.baselines, spec.name), f"baselines.{spec.name}")
     if cfg.ratio.source == "exact" and not get_task(cfg.env).has_exact_ratio:
         raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
+    if cfg.seeds is not None:
+        seeds = list(cfg.seeds)
+        if not seeds or len(set(seeds)) != len(seeds) or not all(isinstance(s, int) and s >= 0 for s in seeds):
+            raise ValueError(f"seeds must be a non-empty list of distinct seeds >= 0 (or null), got {seeds}.")
+        if cfg.resume:
+            raise ValueError(f"seeds={seeds} cannot be resumed (resume={cfg.resume!r}): a multi-seed run writes no "
+                             "checkpoint; run it again, or resume one seed's run started with seed=<s>.")
     from torchrl_wbrm.training.guards import validate_run_settings
 
     validate_run_settings(cfg)  # seeds, sizes, threads, device, finite numbers, the exact return's scope

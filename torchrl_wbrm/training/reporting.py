@@ -99,7 +99,8 @@ def below_behaviour(final: dict, data: dict) -> dict:
 
 
 def load_results(root, *, finished_only: bool = False) -> list[dict]:
-    """Every ``results.json`` under ``root`` (a Hydra multirun directory, or any tree of run directories).
+    """Every ``results.json`` under ``root`` (a Hydra multirun directory, or any tree of run directories); a
+    multi-seed run's (``seeds=[...]``) counts as its seeds' runs.
 
     ``finished_only``: keep runs whose ``"status"`` is ``"finished"`` (results written before statuses existed
     count as finished); see :func:`split_by_status` to count the others.
@@ -107,14 +108,23 @@ def load_results(root, *, finished_only: bool = False) -> list[dict]:
     import json
     from pathlib import Path
 
-    records = []
+    loaded = []
     for path in sorted(Path(root).rglob("results.json")):
         try:
-            record = json.loads(path.read_text())
+            loaded.append((path, json.loads(path.read_text())))
         except json.JSONDecodeError as err:
             raise ValueError(f"{path} is not valid JSON ({err}).") from err
-        record.setdefault("_path", str(path))
-        records.append(record)
+    # a multi-seed run (``seeds=[...]``, ``"kind": "seeds"``) stands for its seeds' runs, each read once
+    seed_paths = {id(run): path.parent / f"seed{run['seed']}" / "results.json"
+                  for path, record in loaded if record.get("kind") == "seeds" for run in record.get("runs", [])}
+    covered = {p.resolve() for p in seed_paths.values()}
+    records = []
+    for path, record in loaded:
+        if record.get("kind") == "seeds":
+            records.extend({**run, "_path": str(seed_paths[id(run)])} for run in record.get("runs", []))
+        elif path.resolve() not in covered:
+            record.setdefault("_path", str(path))
+            records.append(record)
     if not records:
         raise FileNotFoundError(f"No results.json under {root}: did the runs finish?")
     return split_by_status(records)[0] if finished_only else records

@@ -109,8 +109,12 @@ def _to_config(cfg) -> WBRMConfig:
 
 def config_as_dict(cfg) -> dict:
     """``cfg`` (a :class:`WBRMConfig` or a Hydra ``DictConfig`` of one) as the plain dict a run saves under
-    ``"config"`` in its checkpoint and ``results.json``."""
-    return OmegaConf.to_container(OmegaConf.structured(_to_config(cfg)))
+    ``"config"`` in its checkpoint and ``results.json``. ``seeds`` appears only when set (a multi-seed run's), so a
+    one-seed run's config reads as those saved before the key existed."""
+    out = OmegaConf.to_container(OmegaConf.structured(_to_config(cfg)))
+    if out.get("seeds") is None:
+        out.pop("seeds", None)
+    return out
 
 
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:

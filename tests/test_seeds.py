@@ -1,0 +1,108 @@
+"""``seeds=[...]``: several seeds of one config trained together in one process (torchrl_wbrm.training.seeds)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.references import tiny_lqr_config
+from torchrl_wbrm.evaluation.stats import mean_ci
+from torchrl_wbrm.training.config import validate_config
+from torchrl_wbrm.training.reporting import load_results
+from torchrl_wbrm.training.seeds import _clip_per_seed, not_vectorised, run_seeds
+from torchrl_wbrm.training.trainer import WBRMTrainer
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: the tiny LQR config (tests/references.py) as recipe overrides
+TINY_OVERRIDES = [
+    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
+    "ratio.steps=30", "ratio.batch_size=64", "ratio.eval_every=10", "ratio.num_cells=[16,16]",
+    "q.steps=40", "q.batch_size=32", "q.eval_every=20", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
+    "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=300", "logger.backend=", "logger.log_every=5",
+    "plots=false",
+]
+
+
+def test_recipe_seeds_match_separate_runs(tmp_path):
+    """``python recipes/wbrm_offline.py seeds=[0,1]`` (vectorised): each seed's final figures are those of a
+    separate run with that seed, within the evaluation's 95% CI; results.json holds both and their aggregate."""
+    run_dir = tmp_path / "two_seeds"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "seeds=[0,1]", *TINY_OVERRIDES,
+         f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "vectorised over seeds" in proc.stdout
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["kind"] == "seeds" and results["vectorised"] and results["seeds"] == [0, 1]
+    assert [r["seed"] for r in results["runs"]] == [0, 1]
+    assert all(r["status"] == "finished" for r in results["runs"])
+    regrets = [r["final"]["regret"] for r in results["runs"]]
+    assert regrets[0] != regrets[1]  # each seed its own data and initialisation
+    agg = results["aggregate"]["final"]["regret"]
+    ci = mean_ci(regrets)
+    assert agg["mean"] == pytest.approx(ci.mean) and agg["half_width"] == pytest.approx(ci.half_width)
+    for run in results["runs"]:
+        seed = run["seed"]
+        assert run["config"]["seed"] == seed and "seeds" not in run["config"]
+        assert (run_dir / f"seed{seed}" / "history.json").is_file()
+        alone = WBRMTrainer(tiny_lqr_config(seed=seed), tmp_path / f"alone{seed}", progress=False).run()
+        for key in ("regret", "return"):
+            assert abs(run["final"][key] - alone["final"][key]) <= alone["final"][f"{key}_ci"], (seed, key)
+        assert run["final"]["q_error_expert"] == pytest.approx(alone["final"]["q_error_expert"], rel=0.05)
+        assert run["ratio"]["best_step"] == alone["ratio"]["best_step"]
+    # the studies read the run as its two seeds' runs, each once, with the history beside each
+    records = load_results(run_dir)
+    assert sorted(r["seed"] for r in records) == [0, 1]
+    assert all(Path(r["_path"]).with_name("history.json").is_file() for r in records)
+
+
+def test_other_algos_train_one_seed_at_a_time(tmp_path, capsys):
+    cfg = tiny_lqr_config(algo="bc", seeds=[0, 1], q={"steps": 10, "eval_every": 10})
+    assert "algo=bc is not vectorised" in not_vectorised(cfg)
+    results = run_seeds(cfg, tmp_path, progress=False)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("seeds: algo=bc is not vectorised") and "one at a time" in err[0]
+    assert not results["vectorised"] and [r["seed"] for r in results["runs"]] == [0, 1]
+    assert json.loads((tmp_path / "results.json").read_text())["aggregate"]["final"]["return"]["n"] == 2
+
+
+def test_settings_not_vectorised_are_named():
+    assert not_vectorised(tiny_lqr_config(seeds=[0, 1])) is None
+    assert not_vectorised(tiny_lqr_config(algo="fqi", seeds=[0, 1])) is None
+    assert "q.maximiser=sampled" in not_vectorised(tiny_lqr_config(seeds=[0, 1], q={"maximiser": "sampled"}))
+
+
+@pytest.mark.parametrize("seeds, message", [([], "non-empty"), ([0, 0], "distinct"), ([-1], ">= 0")])
+def test_bad_seeds_are_refused(seeds, message):
+    with pytest.raises(ValueError, match=message):
+        validate_config(tiny_lqr_config(seeds=seeds))
+
+
+def test_resume_of_seeds_is_refused():
+    with pytest.raises(ValueError, match=r"seeds=\[0, 1\] cannot be resumed"):
+        validate_config(tiny_lqr_config(seeds=[0, 1], resume="outputs/some_run"))
+
+
+def test_per_seed_gradient_clip_is_torchs_on_each_seed():
+    g = torch.Generator().manual_seed(0)
+    stacked = [torch.randn(3, 4, 5, generator=g) * 10, torch.randn(3, 5, generator=g) * torch.tensor([[0.01], [1.0], [10.0]])]
+    params = [s.clone().requires_grad_() for s in stacked]
+    for p, s in zip(params, stacked):
+        p.grad = s.clone()
+    _clip_per_seed(params, 2.0)
+    for i in range(3):
+        alone = [s[i].clone().requires_grad_() for s in stacked]
+        for p, s in zip(alone, stacked):
+            p.grad = s[i].clone()
+        torch.nn.utils.clip_grad_norm_(alone, 2.0)
+        for p, a in zip(params, alone):
+            torch.testing.assert_close(p.grad[i], a.grad)
