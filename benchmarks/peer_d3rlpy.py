@@ -208,12 +208,17 @@ def main(argv=None) -> None:
                         help="train d3rlpy again even where its run on the same data, budget and seed is saved")
     parser.add_argument("--peer-worker", nargs=5, metavar=("DATA", "ALGO", "STEPS", "SEED", "POLICY"),
                         help=argparse.SUPPRESS)
+    parser.add_argument("--docs-dir", default=None, metavar="PATH",  # the peer worker's venv has no torchrl_wbrm
+                        help="the Sphinx docs folder that receives the table (results/_generated/peer_d3rlpy.md); "
+                             "default: the clone's docs/; 'none': skip")
     args = parser.parse_args(argv)
     if args.peer_worker:
         data, algo, steps, seed, policy = args.peer_worker
         print(json.dumps(peer_train(data, algo, int(steps), int(seed), policy)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from torchrl_wbrm.training.docs_fragments import docs_dir_from_args, publish_study
+
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     peer_python = ensure_venv(Path(args.venv))
@@ -253,12 +258,18 @@ def main(argv=None) -> None:
         (out / "summary.json").write_text(json.dumps(rows, indent=1, default=str))
     print(f"\nLQR exp1, seed {args.seed}, {rows[0]['transitions']} training transitions; paired regret (± 95% CI over "
           f"1,000 paired episodes)\n")
-    print("| method | steps | d3rlpy 2.8.1 | this project | s / 1k updates (d3rlpy vs this project) |")
-    print("|---|---|---|---|---|")
+    lines = ["| method | steps | d3rlpy 2.8.1 | this project | s / 1k updates (d3rlpy vs this project) |",
+             "|---|---|---|---|---|"]
     for r in rows:
-        print(f"| {LABELS[r['algo']]} | {r['steps']} | {r['d3rlpy_regret']:.4f} ± {r['d3rlpy_regret_ci']:.4f} | "
-              f"{r['project_regret']:.4f} ± {r['project_regret_ci']:.4f} | {r['d3rlpy_s_per_1k']:.1f} vs "
-              f"{r['project_s_per_1k']:.1f} |")
+        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {r['d3rlpy_regret']:.4f} ± {r['d3rlpy_regret_ci']:.4f} | "
+                     f"{r['project_regret']:.4f} ± {r['project_regret_ci']:.4f} | {r['d3rlpy_s_per_1k']:.1f} vs "
+                     f"{r['project_s_per_1k']:.1f} |")
+    print("\n".join(lines))
+    (out / "tables.md").write_text("\n".join(lines) + "\n")
+    publish_study("peer_d3rlpy", out / "tables.md", docs_dir_from_args(args.docs_dir), seeds=[args.seed],
+                  budget=", ".join(f"{r['steps']} updates ({LABELS[r['algo']]})" for r in rows) + " in both libraries",
+                  ci="a 95% interval over the 1,000 paired evaluation episodes",
+                  argv=None if argv is None else [sys.argv[0], *argv])
 
 
 if __name__ == "__main__":

@@ -125,6 +125,9 @@ def main() -> None:
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/ablations; --quick: results/ablations_quick)")
     parser.add_argument("--report-only", action="store_true")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/ablations_quick" if args.quick else "results/ablations"))  # a smoke run never mixes with the full one
@@ -137,6 +140,12 @@ def main() -> None:
     text = tables(out, cells)
     (out / "tables.md").write_text(text + "\n")
     print(text)
+    from torchrl_wbrm.training.reporting import load_results
+
+    name = "table_quick" if args.quick else "table"
+    publish_study("ablations", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick),
+                  seeds={r["seed"] for r in load_results(out) if "seed" in r}, budget=name,
+                  budget_overrides=study_budget(name))
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
     log_study_summary("ablations", out, tables=[out / "tables.md"])

@@ -88,6 +88,9 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="results/benchmark")
     parser.add_argument("--quick", action="store_true", help="tiny datasets and budgets (a smoke run)")
     parser.add_argument("--report-only", action="store_true")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
 
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
@@ -115,6 +118,13 @@ def main(argv=None) -> None:
     (out / "tables.md").parent.mkdir(parents=True, exist_ok=True)
     (out / "tables.md").write_text(table)
     print(table)
+    from torchrl_wbrm.training.reporting import load_results
+
+    publish_study("benchmark", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick),
+                  seeds={r["seed"] for r in load_results(out) if "seed" in r},
+                  argv=None if argv is None else [sys.argv[0], *argv],
+                  budget=", ".join(f"×{b}" for b in args.budgets) + " the task's default `q.steps`"
+                  + (" (`--quick`: `ratio.steps=20`, `q.steps=20`, 2 evaluation episodes)" if args.quick else ""))
 
 
 if __name__ == "__main__":

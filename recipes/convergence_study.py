@@ -163,6 +163,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/convergence_study; --quick: results/convergence_study_quick)")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/convergence_study_quick" if args.quick else "results/convergence_study"))  # a smoke run never mixes with the full one
@@ -175,6 +178,10 @@ def main() -> None:
                 json.loads((cell_dir(out, cell, seed, labels=LABELS) / "results.json").read_text()))
                for cell in cells for seed in seeds]
     print(report(records, out))
+    publish_study("convergence", out / "convergence.md", docs_dir_from_args(args.docs_dir, args.quick), seeds=seeds,
+                  budget="convergence" + (" + convergence_quick" if args.quick else ""), budget_overrides=budget,
+                  figures=[out / "convergence.png"], ci="a 95% Student-t interval over the seeds of a size; the "
+                  "slopes: a 95% bootstrap percentile interval")
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
     log_study_summary("convergence_study", out, tables=[out / "convergence.md"], figures=[out / "convergence.png"])

@@ -614,6 +614,10 @@ def main() -> None:
                         help="where the runs and tables go (default results/paper_tables; --quick: results/paper_tables_quick)")
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild tables.md and the figures from finished runs")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, budget_text, docs_dir_from_args, \
+        publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args()
     out = Path(args.out or ("results/paper_tables_quick" if args.quick else "results/paper_tables"))  # a smoke run never mixes with the full one
     algos = args.algos or available_algos()
@@ -653,6 +657,14 @@ def main() -> None:
     budget = table_budget(load_results(out))
     figures = [plot(out), plot_learning_curves(out), plot_budget_check(out, budget) if budget is not None else None]
     print(text)
+    from torchrl_wbrm.training.runs import study_budget
+
+    name = "table_quick" if args.quick else "table"
+    steps = args.budget_steps or ([5, 20] if args.quick else BUDGET_CHECK_STEPS)
+    publish_study("paper_tables", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick),
+                  seeds={r["seed"] for r in load_results(out) if "seed" in r}, figures=figures,
+                  budget=budget_text(name, study_budget(name)) + "; the budget check: "
+                  + ", ".join(f"`q.steps={s}`" for s in steps) + f" on {', '.join(args.budget_envs or []) or 'no env'}")
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
     log_study_summary("paper_tables", out, tables=[out / "tables.md"], figures=[f for f in figures if f is not None])

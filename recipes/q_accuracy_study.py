@@ -398,6 +398,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/q_accuracy_study; --quick: results/q_accuracy_study_quick)")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args()
     unknown = [b for b in args.blocks if b not in BLOCKS and b not in OTHER_BLOCKS]
     if unknown:
@@ -417,8 +420,12 @@ def main() -> None:
         run_cells(group, range(seeds), budget, out, jobs=args.jobs)
     text = tables(out)
     (out / "tables.md").write_text(text + "\n")
-    plot(out)
+    figure = plot(out)
     print(text)
+    counts = sorted({1 if args.quick else c["seeds"] for c in cells}, reverse=True)
+    publish_study("q_accuracy_study", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick),
+                  seeds=" or ".join(f"{n} (0–{n - 1})" if n > 1 else "1 (0)" for n in counts) + " per cell",
+                  budget="quick" if args.quick else "q_accuracy", budget_overrides=budget, figures=[figure])
 
 
 if __name__ == "__main__":

@@ -244,6 +244,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/weighting_study; --quick: results/weighting_study_quick)")
+    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/weighting_study_quick" if args.quick else "results/weighting_study"))  # a smoke run never mixes with the full one
@@ -264,6 +267,8 @@ def main() -> None:
     (out / "tables.md").write_text(text + "\n")
     figure = plot(out)
     print(text)
+    publish_study("weighting_study", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick), seeds=seeds,
+                  budget="quick" if args.quick else "weighting", budget_overrides=budget, figures=[figure])
     from torchrl_wbrm.training.logging import log_study_summary  # the group's wandb summary run (offline)
 
     log_study_summary("weighting_study", out, tables=[out / "tables.md"], figures=[figure] if figure else [])

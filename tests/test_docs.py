@@ -50,6 +50,35 @@ def test_each_results_page_includes_its_studys_fragment(study):
     assert fragment.count("\n|") >= 3, fragment[:200]
 
 
+def test_every_committed_fragment_names_the_command_that_writes_it():
+    """Each fragment in docs/results/_generated/ has the header :func:`publish_study` writes: its first line names
+    the study's command (one of the commands its page shows), its third the seeds, the budget and the interval."""
+    from torchrl_wbrm.training.docs_fragments import read_fragment
+
+    fragments = sorted((DOCS / "results" / "_generated").glob("*.md"))
+    assert {p.stem for p in fragments} == set(STUDIES)
+    for path in fragments:
+        command, details, tables = read_fragment(path.read_text())
+        script = command.split()[1]
+        assert (ROOT / script).is_file() and script.startswith(("recipes/", "benchmarks/")), (path, command)
+        assert script in (DOCS / "results" / "index.md").read_text() + (DOCS / "results" / f"{path.stem}.md").read_text()
+        assert re.match(r"Seeds: \d+ .*\. Budget: .+\. ±: .+\.$", details), (path, details)
+        assert tables.startswith(("|", "#")), (path, tables[:100])
+
+
+def test_publish_study_writes_nothing_without_a_docs_dir(tmp_path):
+    """``--docs-dir none`` and ``--quick`` without ``--docs-dir`` write nothing; a full study run from this clone
+    writes into its docs/."""
+    from torchrl_wbrm.training.docs_fragments import default_docs_dir, docs_dir_from_args, publish_study
+
+    assert docs_dir_from_args(None, quick=True) is None and docs_dir_from_args("none") is None
+    assert docs_dir_from_args(None) == default_docs_dir() == DOCS
+    assert docs_dir_from_args(str(tmp_path)) == tmp_path
+    (tmp_path / "tables.md").write_text("| a |\n|---|\n| 1 |\n")
+    assert publish_study("x", tmp_path / "tables.md", None, seeds=range(2), budget="b") is None
+    assert not list(tmp_path.rglob("x.md"))
+
+
 def test_every_image_the_docs_and_readme_show_exists():
     for path in [ROOT / "README.md", *DOCS.rglob("*.md")]:
         if "_build" in path.parts:

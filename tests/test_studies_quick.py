@@ -23,12 +23,24 @@ def run_study(script: str, *args: str, timeout: int = 300) -> subprocess.Complet
 
 
 def test_weighting_study_quick(tmp_path):
-    run_study("weighting_study.py", "--jobs", "1", "--out", str(tmp_path), "--first-seed", "3")
+    """The cheapest quick study with a figure, also with ``--docs-dir``: its docs fragment is its ``tables.md`` under
+    a header naming the command, and its figure is copied (a quick run writes no fragment without ``--docs-dir``)."""
+    from torchrl_wbrm.training.docs_fragments import read_fragment
+
+    docs = tmp_path / "docs"
+    run_study("weighting_study.py", "--jobs", "1", "--out", str(tmp_path), "--first-seed", "3", "--docs-dir", str(docs))
     runs = sorted(p.parent.name for p in tmp_path.rglob("results.json"))
     assert runs and set(runs) == {"seed3"}, runs  # --first-seed 3: the one quick seed is seed 3, not seed 0
     tables = (tmp_path / "tables.md").read_text()
     assert "unweighted" in tables and "learned ŵ (paper)" in tables and "select" in tables
     assert (tmp_path / "weighting_study.png").is_file()
+    command, details, body = read_fragment((docs / "results" / "_generated" / "weighting_study.md").read_text())
+    assert body == tables
+    assert command == (f"python recipes/weighting_study.py --quick --jobs 1 --out {tmp_path} --first-seed 3 "
+                       f"--docs-dir {docs}")
+    assert details.startswith("Seeds: 1 (3). Budget: `quick` in configs/study_budgets.yaml (`env.lqr_data.")
+    assert details.endswith("±: a 95% Student-t interval over seeds.")
+    assert (docs / "img" / "weighting_study.png").read_bytes() == (tmp_path / "weighting_study.png").read_bytes()
 
 
 def test_paper_tables_quick(tmp_path):
