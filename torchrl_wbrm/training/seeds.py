@@ -43,13 +43,13 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_wbrm.algos import adam_options
+from torchrl_wbrm.data.sampling import BufferBatches
 from torchrl_wbrm.evaluation.stats import mean_ci
 from torchrl_wbrm.objectives import basu_power_divergence, weighted_bellman_residual
 from torchrl_wbrm.objectives._utils import per_sample
 from torchrl_wbrm.objectives.functional import bellman_residual, effective_sample_size
 from torchrl_wbrm.training.config import WBRMConfig
 from torchrl_wbrm.training.guards import TrainingDiverged, json_safe, write_json
-from torchrl_wbrm.training.sampling import BufferBatches
 
 __all__ = ["SeedGroup", "VECTORISED_ALGOS", "aggregate", "not_vectorised", "run_seeds", "seed_config",
            "summarise_seeds"]
@@ -97,6 +97,28 @@ def _swapped(module, params: dict):
                 module.__dict__.pop(name, None)
             else:
                 module.__dict__[name] = value
+
+
+class _Flat(dict):
+    """One seed's parameters of one network as a flat ``{dotted name: tensor}`` dict, read by the losses' network
+    calls as they read a TensorDict (``items(True, True)``): handed through the vmap as a plain pytree, without a
+    TensorDict's per-call batching walk."""
+
+    def items(self, *args):
+        return super().items()
+
+    def values(self, *args):
+        return super().values()
+
+    def detach(self) -> "_Flat":
+        return _Flat({k: v.detach() for k, v in super().items()})
+
+    def to_module(self, module, **kwargs):
+        return TensorDict(dict(super().items())).unflatten_keys(".").to_module(module, **kwargs)
+
+
+def _flat(td: TensorDictBase) -> dict:
+    return {".".join(k) if isinstance(k, tuple) else k: v for k, v in td.items(True, True)}
 
 
 def _stack(tds: list[TensorDictBase], trainable: TensorDictBase | None = None) -> TensorDict:
@@ -235,7 +257,7 @@ class SeedGroup:
     # ------------------------------------------------------------------ stage 1
     def _run_ratio(self) -> None:
         rc = self.cfg.ratio
-        losses = [t.ratio_loss for t in self.trainers]
+        losses = [t.ratio_fitter.loss_module for t in self.trainers]
         call = losses[0]._network_call()
         keys = list(losses[0].ratio_network.in_keys)
         params = _stack([loss.ratio_network_params for loss in losses], losses[0].ratio_network_params)
@@ -262,7 +284,7 @@ class SeedGroup:
         try:
             for step in range(1, total + 1):
                 t0 = time.perf_counter()
-                b = behaviour.sample(self.generators)  # behaviour, then expert: PairedBatches' order
+                b = behaviour.sample(self.generators)  # behaviour, then expert: PairedSampler's order
                 e = expert.sample(self.generators)
                 loss, diagnostics = vmapped(params, b, e)
                 optimiser.zero_grad(set_to_none=True)
@@ -282,7 +304,7 @@ class SeedGroup:
                         trainer = self.trainers[i]
                         with torch.no_grad():
                             for key, value in params.items(True, True):
-                                trainer.ratio_loss.ratio_network_params.get(key).data.copy_(value[i])
+                                trainer.ratio_fitter.loss_module.ratio_network_params.get(key).data.copy_(value[i])
                         trainer.state["step"] = step
                         trainer.ratio_fitter.num_steps = step
                         try:
@@ -401,11 +423,12 @@ class _QUpdate:
         self.loss = loss0 = losses[0]
         for name in ("value_network", "actor_network"):
             loss0._network_call(name)  # built (and cached) on the loss's own parameters, before any swap
+        loss0._network_facts()
         names = [_VALUE, _ACTOR] + ([_TARGET_VALUE] if loss0.delay_value else []) + (
             [_TARGET_ACTOR] if loss0.delay_actor else [])
         self.params = {n: _stack([getattr(loss, n) for loss in losses],
                                  getattr(loss0, n) if n in (_VALUE, _ACTOR) else None) for n in names}
-        self.stacked = TensorDict(self.params, batch_size=[len(losses)])
+        self.stacked = {name: _flat(td) for name, td in self.params.items()}  # the same tensors, as a plain pytree
         self.value_leaves, actor_leaves = _leaves(self.params[_VALUE]), _leaves(self.params[_ACTOR])
         self.optimisers = {"value": torch.optim.Adam(self.value_leaves, lr=qc.lr, **adam_options(self.value_leaves)),
                            "actor": torch.optim.Adam(actor_leaves, lr=qc.actor_lr, **adam_options(actor_leaves))}
@@ -431,9 +454,10 @@ class _QUpdate:
         self.vmapped_actor = torch.vmap(self._actor_loss)
 
     def _swap(self, p):
+        p = {name: _Flat(value) for name, value in p.items()}
         return _swapped(self.loss, {_VALUE: p[_VALUE], _ACTOR: p[_ACTOR],
-                                    _TARGET_VALUE: p.get(_TARGET_VALUE, p[_VALUE].detach()),
-                                    _TARGET_ACTOR: p.get(_TARGET_ACTOR, p[_ACTOR].detach())})
+                                    _TARGET_VALUE: p[_TARGET_VALUE] if _TARGET_VALUE in p else p[_VALUE].detach(),
+                                    _TARGET_ACTOR: p[_TARGET_ACTOR] if _TARGET_ACTOR in p else p[_ACTOR].detach()})
 
     def _value_loss(self, p, batch):
         """One seed's Q loss and figures (inside the vmap): the loss's own pieces with this seed's parameters."""
@@ -460,7 +484,7 @@ class _QUpdate:
             figures = {k: v for k, v in diagnostics.items() if k == "bc_loss"}
             if expert_batch is not None:
                 self.cloning.buffer = _Given(expert_batch)
-                loss, bc = self.cloning(loss, diagnostics["actor_q_mean"].abs(), p[_ACTOR])
+                loss, bc = self.cloning(loss, diagnostics["actor_q_mean"].abs(), _Flat(p[_ACTOR]))
                 figures.update(bc)
         return loss, figures
 
