@@ -4,12 +4,6 @@
     python benchmarks/bench_recipe.py q.steps=500           # any recipe override
     python benchmarks/bench_recipe.py --wall                # also time the real command as a subprocess
     python benchmarks/bench_recipe.py --flush-denormal q.steps=10   # stage 1 with denormal floats flushed to zero
-    python benchmarks/bench_recipe.py --vs-old ratio.steps=500 q.steps=1000   # with every speed shortcut off, too
-
-``--vs-old`` runs the instrumented recipe alternately with every speed shortcut off (``benchmarks/_old_paths.py``:
-the TensorDict loss paths, torchrl's SoftUpdate and replay-buffer sampling, the for-loop Adam) and on, ``--rounds``
-times each, in this process, and prints each part's median seconds and the median new/old ratio: on a shared,
-loaded machine the ratio holds when the absolute seconds do not.
 
 The config is composed from ``configs/wbrm_offline.yaml`` exactly as the recipe does (Hydra's compose API, the same
 overrides); the trainer runs unchanged, with timers wrapped around its methods:
@@ -103,34 +97,9 @@ PARTS = ["data", "setup (networks, eval samples, exact ratio)", "stage 1 (ratio 
          "stage 2 (Q steps)", "evaluation", "checkpoints", "results and plots"]
 
 
-def vs_old(overrides: list[str], rounds: int) -> None:
-    import statistics
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from _old_paths import old_paths
-
-    times = {"old": [], "new": []}
-    for r in range(rounds):
-        for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
-            with tempfile.TemporaryDirectory() as tmp, old_paths(shortcuts=name == "new", fused=name == "new"):
-                seconds, _ = instrumented_run(overrides, Path(tmp) / "run")
-            seconds["total (in process)"] = seconds["construct (total)"] + seconds["run (total)"]
-            times[name].append(seconds)
-    print(f"\nthe recipe{' with ' + ' '.join(overrides) if overrides else ''}: every speed shortcut off (old) and on "
-          f"(new), {rounds} round(s) each, interleaved; median seconds")
-    for key in [*PARTS, "total (in process)"]:
-        old = statistics.median(t.get(key, 0.0) for t in times["old"])
-        new = statistics.median(t.get(key, 0.0) for t in times["new"])
-        ratios = [n.get(key, 0.0) / o[key] for n, o in zip(times["new"], times["old"]) if o.get(key)]
-        ratio = f"{statistics.median(ratios):.2f}x" if ratios else "-"
-        print(f"  {key:<46} old {old:7.2f} s   new {new:7.2f} s   new/old {ratio}")
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--wall", action="store_true", help="also time `python recipes/wbrm_offline.py` itself")
-    parser.add_argument("--vs-old", action="store_true", help="also run with every speed shortcut off (interleaved)")
-    parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--flush-denormal", action="store_true",
                         help="torch.set_flush_denormal(True) first (is a part slowed by denormal floats?)")
     parser.add_argument("overrides", nargs="*")
@@ -139,8 +108,6 @@ def main(argv=None):
         import torch
 
         torch.set_flush_denormal(True)
-    if args.vs_old:
-        return vs_old(args.overrides, args.rounds)
     imports = import_seconds()
     with tempfile.TemporaryDirectory() as tmp:
         seconds, results = instrumented_run(args.overrides, Path(tmp) / "run")

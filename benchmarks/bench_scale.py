@@ -30,7 +30,7 @@ from _timing import single_thread  # noqa: E402
 
 from torchrl_wbrm.envs import LQREnv  # noqa: E402
 from torchrl_wbrm.policies import make_lqr_behaviour  # noqa: E402
-from torchrl_wbrm.training.sampling import BufferBatches  # noqa: E402
+from torchrl_wbrm.data.sampling import BufferBatches  # noqa: E402
 
 
 def peak_rss_mb() -> float:

@@ -4,7 +4,7 @@
     python benchmarks/bench_update.py --device cuda
 
 Each comparison builds the project's update exactly as the trainer does (``build_algo`` on a default
-``WBRMConfig``; the ratio loss and optimiser as ``WBRMTrainer._setup_ratio``) and a twin written with plain torch on
+``WBRMConfig`` with the LQR task's defaults filled in, as the trainer fills them; the ratio loss and optimiser as ``WBRMTrainer._setup_ratio``) and a twin written with plain torch on
 deep copies of the *same* modules (the torchrl ``MLP``s, ``BoundedTanh``, ``BoundedRatio``) from the same initial
 weights, on the same batch:
 
@@ -14,7 +14,7 @@ weights, on the same batch:
   (its actor loss ``−Q(x, μ(x)).mean()`` backpropagates through Q as CleanRL's TD3 does);
 * ratio step: ``RobustDensityRatioLoss`` + backward + gradient clipping + Adam vs ``mean_b w^{3/2} − 3 mean_e
   w^{1/2}`` by hand;
-* each also "with sampling": the trainer's own draw from the replay buffer (``BufferBatches``, ``PairedBatches``:
+* each also "with sampling": the trainer's own draw from the replay buffer (``BufferBatches``, ``PairedSampler``:
   the buffer's own indices, gathered into preallocated tensors) against ``torch.randint`` indexing of plain tensors.
 
 Printed: median time per step over rounds and the median over rounds of the ratio to the twin (same round).
@@ -31,12 +31,15 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from _timing import compare, print_comparison, single_thread  # noqa: E402
 
-from torchrl_wbrm.data import make_replay_buffer  # noqa: E402
-from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches  # noqa: E402
+from torchrl_wbrm.data import OfflineDatasets, make_replay_buffer  # noqa: E402
+from torchrl_wbrm.algos import AlgoContext, adam_options, build_algo  # noqa: E402
+from torchrl_wbrm.algos.base import descend  # noqa: E402
+from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler  # noqa: E402
+from torchrl_wbrm.data.tasks import get_task  # noqa: E402
 from torchrl_wbrm.modules import DensityRatioNetwork  # noqa: E402
 from torchrl_wbrm.objectives import RobustDensityRatioLoss  # noqa: E402
-from torchrl_wbrm.training.algos import AlgoContext, adam_options, build_algo  # noqa: E402
-from torchrl_wbrm.training.config import WBRMConfig  # noqa: E402
+from torchrl_wbrm.objectives._fast import ForeachSoftUpdate  # noqa: E402
+from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
@@ -62,9 +65,13 @@ def lqr_like_data(n: int, device, seed: int = 0) -> TensorDict:
 
 
 def project_q(cfg: WBRMConfig, device):
+    """``algo=wbrm`` built as the trainer builds it, its task holding LQR-like data (S^e feeds the expert cloning)."""
+    data = lqr_like_data(2_000, torch.device("cpu"), seed=2)
+    task = get_task(cfg.env).attach(OfflineDatasets.from_tensordicts(
+        data, data.select("observation", "action"), data.select("observation", "action")))
     spec = Bounded(-5.0, 5.0, (2,), device=device)
     ctx = AlgoContext(cfg=cfg, observation_dim=2, action_dim=2, action_spec=spec, gamma=0.9, q_initial_bias=85.0,
-                      device=device)
+                      device=device, task=task)
     return build_algo("wbrm", ctx)
 
 
@@ -127,8 +134,7 @@ def q_comparisons(cfg, device, iterations, rounds):
     data = lqr_like_data(18_000, device)
     algo = project_q(cfg, device)
     twin = TwinQ(algo, 0.9, cfg.q.target_tau, cfg.q.lr, cfg.q.actor_lr, cfg.q.actor_delay)
-    buffer = make_replay_buffer(data, batch_size=cfg.q.batch_size, device=device) if _buffer_takes_device() else \
-        make_replay_buffer(data, batch_size=cfg.q.batch_size)
+    buffer = make_replay_buffer(data, batch_size=cfg.q.batch_size)
     batch = buffer.sample().to(device)
     tensors = tuple(t.to(device) for t in twin_tensors(batch))
     plain = tuple(t.to(device) for t in twin_tensors(data))
@@ -136,7 +142,7 @@ def q_comparisons(cfg, device, iterations, rounds):
     counter = {"ours": 0, "twin": 0}
 
     def ours_critic():
-        return algo.critic_step(batch) if hasattr(algo, "critic_step") else _critic_step_fallback(algo, cfg, batch)
+        return critic_step(algo, cfg, batch)
 
     def twin_critic():
         return twin.critic_step(tensors)
@@ -174,25 +180,13 @@ def q_comparisons(cfg, device, iterations, rounds):
     return {"critic": r, "full": r2, "full_sampled": r3}
 
 
-def _buffer_takes_device() -> bool:
-    import inspect
-
-    return "device" in inspect.signature(make_replay_buffer).parameters
-
-
-def _critic_step_fallback(algo, cfg, batch):
-    from torchrl_wbrm.training.algos import _descend
-
+def critic_step(algo, cfg, batch):
+    """One Q step as the algo takes it (value loss, Adam), then the target update, without the actor."""
     loss = algo.loss
     if not hasattr(algo, "_bench_updater"):
-        try:  # the updater the algos build
-            from torchrl_wbrm.training.algos import ForeachSoftUpdate as SoftUpdate
-        except ImportError:
-            from torchrl.objectives import SoftUpdate
-
-        algo._bench_updater = SoftUpdate(loss, tau=cfg.q.target_tau)
+        algo._bench_updater = ForeachSoftUpdate(loss, tau=cfg.q.target_tau)  # the updater the algos build
     value, _ = loss.value_loss(batch)
-    _descend(value, algo.optimisers["value"], cfg.q.grad_clip)
+    descend(value, algo.optimisers["value"], cfg.q.grad_clip)
     algo._bench_updater.step()
     return value.detach()
 
@@ -208,7 +202,7 @@ def ratio_comparisons(cfg, device, iterations, rounds):
     twin_opt = torch.optim.Adam(twin_head.parameters(), lr=rc.lr)
     data = lqr_like_data(18_000, device).select("observation", "action")
     expert = lqr_like_data(18_000, device, seed=1).select("observation", "action")
-    sampler = PairedBatches(make_replay_buffer(data), make_replay_buffer(expert), rc.batch_size, device=device)
+    sampler = PairedSampler(make_replay_buffer(data), make_replay_buffer(expert), rc.batch_size, device=device)
     batch = sampler.sample().to(device)
     b = (batch["behaviour", "observation"], batch["behaviour", "action"])
     e = (batch["expert", "observation"], batch["expert", "action"])
@@ -244,7 +238,7 @@ def ratio_comparisons(cfg, device, iterations, rounds):
     print_comparison("ratio step: loss + backward + clip + Adam, batch 512 + 512, 2x128 network", r,
                      yardstick="twin (plain torch)")
     r2 = compare({"twin (randint indexing)": twin_sampled,
-                  "PairedBatches.sample + step": lambda: ours(sampler.sample())},
+                  "PairedSampler.sample + step": lambda: ours(sampler.sample())},
                  yardstick="twin (randint indexing)", iterations=iterations, rounds=rounds, sync=sync)
     print_comparison("ratio step with sampling", r2, yardstick="twin (randint indexing)")
     return {"ratio": r, "ratio_sampled": r2}
@@ -260,7 +254,7 @@ def main(argv=None):
     single_thread()
     device = torch.device(args.device)
     torch.manual_seed(0)
-    cfg = WBRMConfig()
+    cfg = resolve_defaults(WBRMConfig())  # the env's defaults filled in, as the trainer fills them
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {device}")
     if args.only in (None, "q"):
         q_comparisons(cfg, device, args.iterations, args.rounds)

@@ -1,30 +1,30 @@
-"""Do the speed changes leave the recipe's figures unchanged? Runs the trainer three times in this process:
+"""Does a change leave the recipe's figures unchanged? Same seed, same figures: runs the recipe's trainer in this
+process and compares its final figures with a saved run's, digit for digit.
 
-1. ``old``: every shortcut off (the TensorDict/``to_module`` loss paths, torchrl's ``SoftUpdate``, the replay
-   buffers' own ``sample()``, torchrl's ``EnvBase.rollout``, the for-loop Adam);
-2. ``new, for-loop Adam``: the shortcuts on, Adam as in ``old``;
-3. ``new``: as the recipe runs now (fused Adam).
+    python benchmarks/same_figures.py --save /tmp/before.json                 # before the change
+    python benchmarks/same_figures.py --against /tmp/before.json              # after it: equal, or what moved
+    python benchmarks/same_figures.py --save /tmp/before.json env=lqr_exp2 q.steps=3000   # any recipe override
 
-    python benchmarks/same_figures.py                       # a shortened default recipe (ratio 300, Q 600 steps)
-    python benchmarks/same_figures.py ratio.steps=1500 q.steps=3000
-
-Printed: the final figures of each run and whether 1 and 2 are bitwise equal (they should be: the shortcuts compute
-the same numbers) and how far 3 moves from them (fused Adam rounds in another order).
+Without overrides it runs a shortened default recipe (ratio 300, Q 600 steps, one thread); ``--against`` reruns with
+the overrides saved in the file. Exit status 1 when a figure differs.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _old_paths import old_paths  # noqa: E402
+#: The shortened default recipe, one thread (a run's figures depend on the thread count).
+DEFAULT_OVERRIDES = ["ratio.steps=300", "q.steps=600", "q.eval_every=300", "threads=1"]
+#: The final figures compared.
+FIGURES = ("regret", "return", "q_error_expert", "q_error_behaviour", "held_out_bellman_residual")
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def run(overrides, *, shortcuts: bool, fused: bool, run_dir: Path) -> dict:
+def run(overrides: list[str]) -> dict:
+    """The final figures of the recipe's trainer with ``overrides`` (no logger, no plots)."""
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.configs import CONFIG_DIR
@@ -33,27 +33,41 @@ def run(overrides, *, shortcuts: bool, fused: bool, run_dir: Path) -> dict:
     register_configs()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("wbrm_offline", overrides=["logger=none", "plots=false", *overrides])
-    with old_paths(shortcuts=shortcuts, fused=fused):
-        trainer = WBRMTrainer(cfg, run_dir, progress=False)
-        return trainer.run()["final"]
-
-
-def main(argv=None):
-    overrides = list(sys.argv[1:] if argv is None else argv) or ["ratio.steps=300", "q.steps=600", "q.eval_every=300"]
-    finals = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for i, (name, shortcuts, fused) in enumerate((("old", False, False), ("new, for-loop Adam", True, False),
-                                                      ("new", True, True))):
-            finals[name] = run(overrides, shortcuts=shortcuts, fused=fused, run_dir=Path(tmp) / str(i))
-    keys = [k for k in ("regret", "return", "q_error_expert", "q_error_behaviour", "held_out_bellman_residual")
-            if k in finals["old"]]
+        final = WBRMTrainer(cfg, Path(tmp) / "run", progress=False).run()["final"]
+    return {k: final[k] for k in FIGURES if k in final}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--save", type=Path, help="write this run's figures (and its overrides) to this JSON file")
+    group.add_argument("--against", type=Path, help="compare this run's figures with those saved in this file")
+    parser.add_argument("overrides", nargs="*", help="recipe overrides (default: a shortened default recipe)")
+    args = parser.parse_args(argv)
+    if args.against is not None:
+        saved = json.loads(args.against.read_text())
+        overrides = args.overrides or saved["overrides"]
+    else:
+        overrides = args.overrides or DEFAULT_OVERRIDES
+    figures = run(overrides)
     print(f"final figures ({' '.join(overrides)}):")
-    for name, final in finals.items():
-        print(f"  {name:<20} " + "  ".join(f"{k} {final[k]:.10g}" for k in keys))
-    same = all(finals["old"][k] == finals["new, for-loop Adam"][k] for k in keys)
-    print(f"  old == new with the for-loop Adam, bit for bit: {same}")
-    print("  new (fused Adam) - old: " + "  ".join(f"{k} {finals['new'][k] - finals['old'][k]:+.3g}" for k in keys))
+    print("  " + "  ".join(f"{k} {v!r}" for k, v in figures.items()))
+    if args.save is not None:
+        args.save.write_text(json.dumps({"overrides": overrides, "figures": figures}, indent=1))
+        print(f"saved to {args.save}")
+        return 0
+    if overrides != saved["overrides"]:
+        print(f"  note: the saved run had the overrides {' '.join(saved['overrides'])}")
+    moved = {k: (saved["figures"].get(k), v) for k, v in figures.items() if saved["figures"].get(k) != v}
+    if not moved:
+        print(f"  the same figures as {args.against}, digit for digit")
+        return 0
+    for k, (before, now) in moved.items():
+        print(f"  {k}: {before!r} -> {now!r}")
+    return 1
 
 
 if __name__ == "__main__":
-    main()
+    os.environ.setdefault("TQDM_DISABLE", "1")
+    sys.exit(main())

@@ -1,5 +1,5 @@
-"""ActionGrid (the joint grid of a discretised action box, algo=dqn's action space) lives in torchrl_wbrm.modules;
-torchrl_wbrm.training.algos re-exports it."""
+"""torchrl_wbrm.modules.action_grid: ActionGrid, the joint grid of a discretised action box (algo=dqn's action
+space)."""
 from __future__ import annotations
 
 import torch
@@ -18,8 +18,3 @@ def test_grid_round_trip_and_snapping():
     assert torch.equal(grid.values[0], grid.values[1])  # the box is the same in both coordinates
     assert grid.values[0, 2].abs() < 1e-6 and (grid.values[0].diff() > 0).all()  # symmetric bins, in order
 
-
-def test_the_old_import_path_still_works():
-    from torchrl_wbrm.training.algos import ActionGrid as Old
-
-    assert Old is ActionGrid

@@ -261,11 +261,3 @@ def test_a_finished_run_is_reused_only_under_its_own_settings(tmp_path):
     with pytest.raises(ValueError, match="without the config they ran with"):
         run_overrides(overrides, tmp_path)
 
-
-def test_the_names_scripts_imported_before_still_import():
-    from torchrl_wbrm.training import algos as old
-    from torchrl_wbrm.training.config import MABOConfig, TD3BCConfig
-
-    assert TD3BCConfig is get_algo("td3bc").config and MABOConfig is get_algo("mabo").config
-    assert old.ALGOS is ALGOS and old.build_algo is build_algo and old.build_td3bc is get_algo("td3bc").build
-    assert {"Algo", "AlgoContext", "ActionGrid", "adam_options", "make_tanh_normal_actor"} <= set(old.__all__)

@@ -1,4 +1,4 @@
-"""Every method (``algo=...``, :mod:`torchrl_wbrm.training.algos`) through the recipe and its trainer.
+"""Every method (``algo=...``, :mod:`torchrl_wbrm.algos`) through the recipe and its trainer.
 
 - Each algo runs once through ``recipes/wbrm_offline.py`` itself (one Hydra multirun over all of them, tiny
   budget, the recipe's default plots and logger) and its ``results.json``, ``history.json``, figures and CSV logs are
@@ -30,7 +30,8 @@ import torch
 
 from torchrl_wbrm.envs import LQRConfig, make_lqr_env
 from torchrl_wbrm.training import WBRMTrainer
-from torchrl_wbrm.training.algos import ALGOS, ActionGrid
+from torchrl_wbrm.algos import ALGOS
+from torchrl_wbrm.modules import ActionGrid
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 
 from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
@@ -170,7 +171,7 @@ def _learned(algo: str) -> dict:
     _RUN_DIRS.append(tempfile.mkdtemp(prefix=f"learn_{algo}_"))
     trainer = WBRMTrainer(cfg, _RUN_DIRS[-1], progress=False)
     results = trainer.run()
-    env = lqr_env(trainer.lqr_config)
+    env = lqr_env(trainer.task.lqr_config)
     _, K = env.riccati()
     data = trainer.cfg.env.lqr_data
     samples = trainer.eval_samples["expert"]
@@ -183,7 +184,7 @@ def _learned(algo: str) -> dict:
         "weights": results["weights"],
         "ratio": results["ratio"],
         "config": results["config"],
-        "regrets": reference_regrets(trainer.lqr_config, behaviour_gain_scale=data.behaviour_gain_scale),
+        "regrets": reference_regrets(trainer.task.lqr_config, behaviour_gain_scale=data.behaviour_gain_scale),
         "q_constant": relative_q_error(torch.full_like(q_star, q_star.mean().item()), q_star),
         "q_behaviour": relative_q_error(q_behaviour, q_star),
     }
@@ -252,7 +253,7 @@ def test_each_q_method_estimates_q_star_better_than_the_baselines(single_thread,
 def test_wbrm_learns_with_the_recipes_learned_and_shaped_weights(single_thread):
     """The paper's method as the recipe runs it: stage 1 fitted ŵ (early stopping on held-out loss), the recipe's
     shaping (``ratio.temper``) applied to the stored weights; its regret and Q̂ bars are checked above."""
-    from torchrl_wbrm.training import shape_weights
+    from torchrl_wbrm.ratio import shape_weights
 
     run = _learned("wbrm")
     recipe = compose_recipe().ratio  # the recipe's stage-1 defaults, whatever they are

@@ -82,7 +82,7 @@ def test_expert_samples_follow_the_expert(lqr_data):
 def test_paired_sampler(lqr_data):
     sampler = lqr_data.paired_sampler(16)
     torch.manual_seed(0)
-    batch = sampler.sample()
+    batch = sampler.sample().clone()  # the next draw overwrites the sampler's batch
     assert batch.batch_size == (16,)
     assert set(batch.keys()) == {"behaviour", "expert"}
     assert batch["behaviour", "observation"].shape == (16, 2) and batch["expert", "action"].shape == (16, 2)

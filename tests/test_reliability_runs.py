@@ -20,7 +20,7 @@ import torch
 
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
-from torchrl_wbrm.training.algos import ALGOS
+from torchrl_wbrm.algos import ALGOS
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 from torchrl_wbrm.training.guards import CONTINUABLE_KEYS, RunInterrupted
 from torchrl_wbrm.training.plots import LOSS_TITLES

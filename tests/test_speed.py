@@ -12,12 +12,11 @@ from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate
 
 from torchrl_wbrm.data import make_replay_buffer
-from torchrl_wbrm.data.datasets import PairedSampler
 from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
 from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate, NetworkCall
-from torchrl_wbrm.training.algos import adam_options
-from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
+from torchrl_wbrm.algos import adam_options
+from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 
 SPEC = Bounded(-2.0, 2.0, (2,))
 
@@ -205,16 +204,23 @@ def test_buffer_batches_do_not_leak_entries_between_draws():
     assert "td_error" not in batches.sample().keys()
 
 
-def test_paired_batches_draw_what_paired_sampler_draws():
+def test_paired_sampler_draws_what_the_buffers_and_their_ensemble_draw():
+    from torchrl.data import ReplayBufferEnsemble
+
     b, e = make_replay_buffer(_data(300)), make_replay_buffer(_data(120, seed=3).select("observation", "action"))
-    sampler, batches = PairedSampler(b, e, 16), PairedBatches(b, e, 16)
+    sampler = PairedSampler(b, e, 16)
+    keys = ("observation", "action")
     torch.manual_seed(2)
-    expected = sampler.sample()
+    by_buffer = TensorDict({"behaviour": b.sample(16).select(*keys), "expert": e.sample(16).select(*keys)}, [16])
     torch.manual_seed(2)
-    got = batches.sample()
-    assert expected.batch_size == got.batch_size
-    assert set(expected.keys(True, True)) == set(got.keys(True, True))
-    assert (expected == got).all()
+    pair = ReplayBufferEnsemble(b, e, sample_from_all=True, batch_size=32).sample()
+    by_ensemble = TensorDict({"behaviour": pair[0].select(*keys), "expert": pair[1].select(*keys)}, [16])
+    torch.manual_seed(2)
+    got = sampler.sample()
+    for expected in (by_buffer, by_ensemble):
+        assert expected.batch_size == got.batch_size
+        assert set(expected.keys(True, True)) == set(got.keys(True, True))
+        assert (expected == got).all()
 
 
 class _NoisyLinearPolicy(TensorDictModuleBase):

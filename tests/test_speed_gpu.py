@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchrl_wbrm.data import make_replay_buffer
-from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
+from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 
 pytestmark = [
     pytest.mark.gpu,
@@ -40,7 +40,7 @@ def test_buffer_batches_on_cuda_draw_and_gather_without_a_sync():
         for _ in range(3):
             batch = batches.sample()
     assert batch.device.type == "cuda" and batch["observation"].device.type == "cuda"
-    paired = PairedBatches(make_replay_buffer(_data()), make_replay_buffer(_data(200)), 32, device="cuda")
+    paired = PairedSampler(make_replay_buffer(_data()), make_replay_buffer(_data(200)), 32, device="cuda")
     with _no_sync():
         pair = paired.sample()
     assert pair["expert", "action"].device.type == "cuda"
@@ -49,7 +49,7 @@ def test_buffer_batches_on_cuda_draw_and_gather_without_a_sync():
 def test_wbrm_update_on_cuda_without_a_sync():
     from torchrl.data import Bounded
 
-    from torchrl_wbrm.training.algos import AlgoContext, build_algo
+    from torchrl_wbrm.algos import AlgoContext, build_algo
     from torchrl_wbrm.training.config import WBRMConfig
 
     cfg = WBRMConfig()

@@ -8,7 +8,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_wbrm.training import WBRMConfig, WBRMTrainer, shape_weights, validate_config
+from torchrl_wbrm.ratio import shape_weights
+from torchrl_wbrm.training import WBRMConfig, WBRMTrainer, validate_config
 
 from tests.references import policy_q, reference_regrets, relative_q_error
 
@@ -108,9 +109,9 @@ def test_evaluation_scores_known_policies_at_their_exact_figures(finished_run):
     from tensordict.nn import TensorDictModule
 
     trainer = finished_run[0]
-    env = trainer.lqr_env
+    env = trainer.task.lqr_env
     _, K = env.riccati()
-    exact = reference_regrets(trainer.lqr_config)
+    exact = reference_regrets(trainer.task.lqr_config)
     actor, q_value, episodes = trainer.actor, trainer.algo.q_value, trainer.cfg.eval.episodes
     try:
         trainer.cfg.eval.episodes = 1000
@@ -158,7 +159,7 @@ def test_early_stopping_stops_the_ratio_stage_and_restores_its_best_state(tmp_pa
     best = min(records, key=lambda r: r["held_out_loss"])
     assert records[-1]["held_out_loss"] > best["held_out_loss"] + 1e-4  # the last state is not the best one ...
     with torch.no_grad():
-        now = trainer.ratio_loss(trainer.ratio_holdout)["loss_density_ratio"].item()
+        now = trainer.ratio_fitter.loss_module(trainer.ratio_fitter.holdout)["loss_density_ratio"].item()
     assert now == pytest.approx(best["held_out_loss"], abs=1e-6)  # ... and the network holds the best one
     assert results["ratio"]["best_step"] == best["step"]
     with torch.no_grad():
@@ -200,19 +201,19 @@ def test_exact_source_stores_the_true_ratio_expert_over_behaviour(tmp_path, temp
     # behaviour samples: log dP^e/dP^b, not its negative
     for samples in (trainer.datasets.expert_samples[:], trainer.q_train_data):
         log_w = trainer.true_ratio.module.log_ratio(samples["observation"], samples["action"]).reshape(-1)
-        expected = _true_ratio_by_hand(trainer.lqr_env, samples["observation"], samples["action"], log=True, **policies)
+        expected = _true_ratio_by_hand(trainer.task.lqr_env, samples["observation"], samples["action"], log=True, **policies)
         torch.testing.assert_close(log_w, expected, rtol=1e-6, atol=1e-6)
     trainer._build_q_buffer()
     d = trainer.q_buffer[:]
-    w = _true_ratio_by_hand(trainer.lqr_env, d["observation"], d["action"], **policies)
+    w = _true_ratio_by_hand(trainer.task.lqr_env, d["observation"], d["action"], **policies)
     torch.testing.assert_close(d["density_ratio"].double().squeeze(-1), w**temper / (w**temper).mean(), rtol=1e-4, atol=1e-7)
     # the direction: the ratio is large where the action is near the expert's −0.95Kx and small far from it
-    _, K = trainer.lqr_env.riccati()
+    _, K = trainer.task.lqr_env.riccati()
     distance = (d["action"].double() + d["observation"].double() @ (policies["expert"][0] * K).T).norm(dim=-1)
     near, far = d["density_ratio"].squeeze(-1)[distance < 0.1], d["density_ratio"].squeeze(-1)[distance > 1.0]
     assert near.min() > 1 > far.max()
     e = trainer.datasets.expert_samples[:]
-    assert _true_ratio_by_hand(trainer.lqr_env, e["observation"], e["action"], **policies).mean() > 10  # E_e[w] ≫ 1
+    assert _true_ratio_by_hand(trainer.task.lqr_env, e["observation"], e["action"], **policies).mean() > 10  # E_e[w] ≫ 1
 
 
 def _params(trainer):
@@ -289,10 +290,11 @@ def test_ratio_gradient_clipping_bounds_the_step(tmp_path):
     def first_step_change(clip):
         torch.manual_seed(0)
         trainer = WBRMTrainer(tiny_config(ratio={"grad_clip": clip, "lr": 1e-2}), tmp_path / str(clip), progress=False)
-        before = [p.detach().clone() for p in trainer.ratio_loss.parameters()]
-        trainer.ratio_optim = torch.optim.SGD(trainer.ratio_loss.parameters(), lr=1.0)
+        before = [p.detach().clone() for p in trainer.ratio_fitter.loss_module.parameters()]
+        trainer.ratio_fitter.optimizer = torch.optim.SGD(trainer.ratio_fitter.loss_module.parameters(), lr=1.0)
         trainer._ratio_step(1)
-        return sum((p.detach() - b).norm() ** 2 for p, b in zip(trainer.ratio_loss.parameters(), before)).sqrt().item()
+        params = trainer.ratio_fitter.loss_module.parameters()
+        return sum((p.detach() - b).norm() ** 2 for p, b in zip(params, before)).sqrt().item()
 
     clipped, free = first_step_change(1e-3), first_step_change(None)
     assert clipped <= 1e-3 + 1e-9  # SGD with lr 1: the step is the clipped gradient, norm <= 1e-3

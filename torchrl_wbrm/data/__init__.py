@@ -1,12 +1,12 @@
 """Offline datasets: collection with torchrl's Collector, the D / S^b / S^e split, replay buffers, save/load."""
 from torchrl_wbrm.data.datasets import (
     OfflineDatasets,
-    PairedSampler,
     collect_transitions,
     episode_returns,
     make_replay_buffer,
     split_by_episode,
 )
+from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, cached_offline_datasets, make_offline_datasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, write_minari_dataset
@@ -18,6 +18,7 @@ __all__ = [
     "make_offline_datasets",
     "cached_offline_datasets",
     "OfflineDatasets",
+    "BufferBatches",
     "PairedSampler",
     "collect_transitions",
     "episode_returns",

@@ -9,7 +9,7 @@ The paper (Section 3) needs three independent sets:
 ``D`` and ``S^b`` come from one behaviour collection split by *episode* (so the two sets are disjoint and
 independent, as the paper requires ``S`` independent of ``D``). Each set lives in a ``TensorDictReplayBuffer``
 over a ``LazyTensorStorage`` (or a ``LazyMemmapStorage`` for data larger than memory); paired ratio batches
-``TensorDict({"behaviour": ..., "expert": ...})`` are drawn through torchrl's ``ReplayBufferEnsemble``.
+``TensorDict({"behaviour": ..., "expert": ...})`` are drawn by :class:`~torchrl_wbrm.data.sampling.PairedSampler`.
 """
 from __future__ import annotations
 
@@ -24,7 +24,9 @@ from typing import Callable
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.data import LazyMemmapStorage, LazyTensorStorage, ReplayBufferEnsemble, TensorDictReplayBuffer
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+
+from torchrl_wbrm.data.sampling import STATE_ACTION_KEYS, PairedSampler
 
 __all__ = [
     "OfflineDatasets",
@@ -34,7 +36,6 @@ __all__ = [
     "min_behaviour_episodes",
     "FORMAT_VERSION",
     "TRANSITION_KEYS",
-    "PairedSampler",
     "episode_returns",
     "check_finite",
     "read_saved_dataset",
@@ -52,7 +53,6 @@ TRANSITION_KEYS = (
     ("next", "terminated"),
     ("next", "truncated"),
 )
-STATE_ACTION_KEYS = ("observation", "action")
 PARTS = ("transitions", "behaviour_samples", "expert_samples")
 #: torch's global generator (policy noise) is seeded with ``seed + POLICY_SEED_OFFSET``, the env with ``seed``.
 POLICY_SEED_OFFSET = 7_919_981
@@ -559,23 +559,6 @@ def _read_verified_part(root: Path, name: str, entries: dict, expected_rows) -> 
     for key, value in values.items():
         td.set(key, value)
     return td
-
-
-class PairedSampler:
-    """Draws ``TensorDict({"behaviour": S^b batch, "expert": S^e batch})`` through a ``ReplayBufferEnsemble``."""
-
-    def __init__(self, behaviour: TensorDictReplayBuffer, expert: TensorDictReplayBuffer, batch_size: int):
-        if batch_size <= 0:
-            raise ValueError(f"batch_size must be > 0, got {batch_size}.")
-        self.batch_size = int(batch_size)
-        self._ensemble = ReplayBufferEnsemble(behaviour, expert, sample_from_all=True, batch_size=2 * self.batch_size)
-
-    def sample(self) -> TensorDict:
-        pair = self._ensemble.sample().exclude("index")
-        return TensorDict(
-            {"behaviour": pair[0].select(*STATE_ACTION_KEYS), "expert": pair[1].select(*STATE_ACTION_KEYS)},
-            batch_size=[self.batch_size],
-        )
 
 
 def episode_returns(data: TensorDictBase, *, gamma: float = 1.0) -> torch.Tensor:

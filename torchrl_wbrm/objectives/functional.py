@@ -7,6 +7,7 @@ quantities by calling the functions below, and nothing else computes them:
 - stage 2, the Bellman residual: :func:`bellman_target`, :func:`bellman_residual`, :func:`weighted_bellman_residual`
   (its two forms) and MABO's :func:`average_bellman_residual`;
 - the actor: :func:`td3bc_lambda`, TD3+BC's normalisation of the Q term;
+- Q's blow-up bound: :func:`q_value_bound`, the largest |Q| a discounted return of bounded rewards reaches;
 - the per-sample weight: :func:`per_sample_weight` (reading ŵ and the priority weight), :func:`reduce_batch`,
   :func:`weighted_reduce` and :func:`effective_sample_size`.
 """
@@ -30,6 +31,7 @@ __all__ = [
     "effective_sample_size",
     "per_sample_weight",
     "power_divergence_integrands",
+    "q_value_bound",
     "reduce_batch",
     "td3bc_lambda",
     "weighted_bellman_residual",
@@ -404,3 +406,28 @@ def td3bc_lambda(alpha: float, q_value: torch.Tensor) -> torch.Tensor:
         tensor(1.2500)
     """
     return alpha / q_value.abs().mean().detach().clamp_min(1e-6)
+
+
+# ---------------------------------------------------------------------- Q's scale
+def q_value_bound(reward_max: float, gamma: float, factor: float = 1.0) -> float:
+    r"""``factor`` times the largest discounted return of rewards bounded by ``reward_max``: Q past it has blown up.
+
+    .. math::
+
+        |Q(x, a)| \le \sum_{t \ge 0} \gamma^t \max|r| = \frac{\max|r|}{1 - \gamma}
+
+    The loss's divergence warning and the trainer's ``q_blow_up`` flag both compare Q against this bound, each with
+    its own ``factor`` (a margin over the exact bound).
+
+    Args:
+        reward_max (float): max|r| over the data.
+        gamma (float): the discount, below 1.
+        factor (float): the margin over the bound. Defaults to 1.
+
+    Examples:
+        >>> q_value_bound(1.0, 0.9)
+        10.000000000000002
+        >>> q_value_bound(1.0, 0.9, factor=2.0)
+        20.000000000000004
+    """
+    return factor * reward_max / (1.0 - gamma)

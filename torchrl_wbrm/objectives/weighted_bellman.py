@@ -29,6 +29,7 @@ from torchrl_wbrm.objectives.functional import (
     bellman_target,
     effective_sample_size,
     per_sample_weight,
+    q_value_bound,
     reduce_batch,
     td3bc_lambda,
     weighted_bellman_residual,
@@ -702,7 +703,7 @@ class WeightedBellmanLoss(LossModule):
         else:
             q_max, r_max = float(q_value.abs().amax()), float(bound_given)
             source = "the reward_bound given"
-        bound = self.q_bound_margin * r_max / (1.0 - gamma)
+        bound = q_value_bound(r_max, gamma, self.q_bound_margin)
         if r_max > 0 and q_max > bound:
             self.q_bound_exceeded = True
             warnings.warn(

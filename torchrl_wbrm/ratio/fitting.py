@@ -20,7 +20,7 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
-from torchrl_wbrm.data import make_replay_buffer
+from torchrl_wbrm.data import PairedSampler, make_replay_buffer
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 
@@ -72,18 +72,6 @@ def _as_inputs(data: TensorDictBase, keys: Sequence[NestedKey], dtype: torch.dty
                        f"{list(keys)}); it holds {sorted(str(k) for k in data.keys(True, True))}.")
     data = data.select(*keys)
     return data.apply(lambda x: x.to(dtype) if x.is_floating_point() and x.dtype != dtype else x)
-
-
-class _PairedBufferSampler:
-    """``TensorDict({"behaviour": ..., "expert": ...})`` of ``keys``: one ``sample()`` of each buffer, in that order."""
-
-    def __init__(self, behaviour: ReplayBuffer, expert: ReplayBuffer, batch_size: int, keys: Sequence[NestedKey]):
-        self.behaviour, self.expert, self.batch_size, self.keys = behaviour, expert, int(batch_size), list(keys)
-
-    def sample(self) -> TensorDict:
-        b = self.behaviour.sample(self.batch_size).select(*self.keys)
-        e = self.expert.sample(self.batch_size).select(*self.keys)
-        return TensorDict({"behaviour": b, "expert": e}, batch_size=[self.batch_size])
 
 
 @dataclass
@@ -226,7 +214,7 @@ class DensityRatioFitter:
         self.behaviour_buffer = make_replay_buffer(b_train.select(*self.keys))
         self.expert_buffer = make_replay_buffer(e_train.select(*self.keys))
         self.batch_size = int(batch_size)
-        self.sampler = _PairedBufferSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, self.keys)
+        self.sampler = PairedSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, keys=self.keys)
         self.holdout = TensorDict(
             {"behaviour": b_hold.select(*self.keys), "expert": e_hold.select(*self.keys)}, batch_size=[]
         ).to(self.device)

@@ -12,7 +12,6 @@ from torchrl_wbrm.training.config import (
     validate_config,
 )
 from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir, get_rng_state, set_rng_state, set_seed
-from torchrl_wbrm.training.weights import shape_weights
 
 __all__ = [
     "EvalConfig",
@@ -28,7 +27,6 @@ __all__ = [
     "register_configs",
     "set_rng_state",
     "set_seed",
-    "shape_weights",
     "resolve_defaults",
     "validate_config",
 ]

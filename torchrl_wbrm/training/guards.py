@@ -39,6 +39,7 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.keys import CHECKPOINT
 
 __all__ = [
     "CONTINUABLE_KEYS",
@@ -60,7 +61,6 @@ __all__ = [
     "read_checkpoint",
 ]
 
-CHECKPOINT = "checkpoint.pt"
 #: Files that mark a directory as holding a run.
 RUN_FILES = (CHECKPOINT, "results.json")
 #: Keys a resumed run may change: they do not change what has been trained (``q.steps`` only upwards).
@@ -179,7 +179,7 @@ class StopSignals:
 #: What a run writes into its directory (besides Hydra's record): removed by ``overwrite=true`` so that no output of
 #: the earlier run (its CSV logs above all, which torchrl's ``CSVLogger`` would append to) outlives it.
 RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", "results.json", "results.json.tmp", "history.json", "history.json.tmp",
-               "training_curve.png", "evaluation.png", "logs", "wandb", "torch_compile_cache")
+               "training_curve.png", "evaluation.png", "logs", "wandb")
 #: Hydra's record of the command that made the run (``.hydra/``) and its job log (``<job name>.log``).
 HYDRA_RECORD = (".hydra",)
 

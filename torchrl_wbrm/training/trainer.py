@@ -31,21 +31,22 @@ from typing import Callable
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
 from torchrl_wbrm.data.datasets import split_by_episode
+from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.data.tasks import Evaluator, Task, get_task
 from torchrl_wbrm.evaluation import ratio_error
+from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
+from torchrl_wbrm.objectives.functional import q_value_bound
 from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults, validate_config
 from torchrl_wbrm.training.reporting import below_behaviour
 from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
-from torchrl_wbrm.training.sampling import BufferBatches, PairedBatches
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.guards import (
     RunDirClaim,
@@ -67,8 +68,6 @@ from torchrl_wbrm.training.guards import (
 )
 
 __all__ = ["WBRMTrainer", "default_run_dir", "set_seed", "get_rng_state", "set_rng_state"]
-
-CHECKPOINT = "checkpoint.pt"
 
 
 def set_seed(seed: int) -> None:
@@ -262,31 +261,9 @@ class WBRMTrainer:
             generator=torch.Generator().manual_seed(self.cfg.seed + 17), patience=rc.patience, device=self.device,
         )
         # the fitter's paired batches, gathered straight into preallocated tensors on the device
-        self.ratio_batches = PairedBatches(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
+        self.ratio_batches = PairedSampler(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
                                            rc.batch_size, device=self.device)
         self.ratio_fitter.sampler = self.ratio_batches
-
-    # the stage-1 pieces, held by the fitter (names kept for scripts and tests written against the trainer)
-    @property
-    def ratio_loss(self) -> RobustDensityRatioLoss | None:
-        return None if self.ratio_fitter is None else self.ratio_fitter.loss_module
-
-    @property
-    def ratio_optim(self) -> torch.optim.Optimizer | None:
-        return None if self.ratio_fitter is None else self.ratio_fitter.optimizer
-
-    @ratio_optim.setter
-    def ratio_optim(self, optimiser: torch.optim.Optimizer) -> None:
-        self.ratio_fitter.optimizer = optimiser
-
-    @property
-    def ratio_best(self) -> dict | None:
-        """The early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, ``bad``."""
-        return None if self.ratio_fitter is None else self.ratio_fitter.best
-
-    @property
-    def ratio_holdout(self) -> TensorDict | None:
-        return None if self.ratio_fitter is None else self.ratio_fitter.holdout
 
     def _setup_q(self) -> None:
         """Stage 2 (or the baseline named by ``algo``): loss, optimisers, step function and evaluated policy."""
@@ -324,15 +301,6 @@ class WBRMTrainer:
         self.evaluator: Evaluator = self.task.evaluator(self.cfg.eval)
         self.eval_samples = self.evaluator.eval_samples
         self.true_ratio = self.evaluator.true_ratio
-
-    # names kept for scripts and tests written against the trainer (an LQR task's; others raise AttributeError)
-    @property
-    def lqr_env(self):
-        return self.task.lqr_env
-
-    @property
-    def lqr_config(self):
-        return self.task.lqr_config
 
     # ------------------------------------------------------------------ the shared loop
     def _run_stage(
@@ -612,7 +580,7 @@ class WBRMTrainer:
     def _q_scale(self, final: dict) -> dict:
         """The largest |mean Q̂| the run reports (final evaluation, last training figures) against r_max / (1 − γ)."""
         r_max = float(self.datasets.transitions[:]["next", "reward"].abs().max())
-        bound = r_max / (1 - self.gamma)
+        bound = q_value_bound(r_max, self.gamma)
         train = [r for r in self.history if r["stage"] == "q_train"]
         values = {k: v for k, v in final.items() if k.startswith("q_mean")}
         if train:
@@ -621,7 +589,7 @@ class WBRMTrainer:
         largest = max(values.values(), default=None)
         return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
                 "bound": bound, "factor": self.BLOW_UP_FACTOR,
-                "blow_up": largest is not None and largest > self.BLOW_UP_FACTOR * bound}
+                "blow_up": largest is not None and largest > q_value_bound(r_max, self.gamma, self.BLOW_UP_FACTOR)}
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
         """``results.json`` of a run stopped by divergence: valid JSON, ``"status": "diverged"`` and where."""
@@ -655,8 +623,8 @@ class WBRMTrainer:
             "weights": self.weight_stats,
             "ratio": {
                 "source": self.cfg.ratio.source if self.algo.uses_ratio else "none",
-                "best_held_out_loss": self.ratio_best["loss"] if self.ratio_network is not None else None,
-                "best_step": self.ratio_best.get("step") if self.ratio_network is not None else None,
+                "best_held_out_loss": self.ratio_fitter.best["loss"] if self.ratio_network is not None else None,
+                "best_step": self.ratio_fitter.best.get("step") if self.ratio_network is not None else None,
                 "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
                 **({k: v for k, v in ratio_records[-1].items() if k.startswith("ratio_")} if ratio_records else {}),
             },
@@ -665,7 +633,7 @@ class WBRMTrainer:
             "config": config_as_dict(self.cfg),
         }
         if self.ratio_network is not None and ratio_records:
-            best = [r for r in ratio_records if r["step"] == self.ratio_best.get("step")]
+            best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
         results["q_scale"] = self._q_scale(results["final"])
@@ -712,7 +680,7 @@ class WBRMTrainer:
         """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
         the checkpoint on disk is always the last finite one."""
         path = self.run_dir / CHECKPOINT
-        bad = non_finite_parameter(self.q_loss, self.ratio_loss if self.ratio_network is not None else None)
+        bad = non_finite_parameter(self.q_loss, self.ratio_fitter.loss_module if self.ratio_fitter is not None else None)
         if bad is not None:
             raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
         state = self.state_dict()

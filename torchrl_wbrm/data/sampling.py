@@ -1,16 +1,17 @@
-"""The trainer's batch draws without the replay buffer's per-call bookkeeping.
+"""Batch draws from the offline replay buffers without the buffer's per-call bookkeeping: D's batches and the paired
+S^b/S^e batches of stage 1.
 
 ``TensorDictReplayBuffer.sample()`` draws its indices with one ``torch.randint`` and then spends most of its time in
-TensorDict machinery (the sampler/writer protocol, an ``"index"`` entry, a device cast); the paired ratio batch goes
-through a ``ReplayBufferEnsemble`` as well. On the recipe's batches that was 0.4 ms per Q step and 1.6 ms per ratio
-step on this machine, against about 0.1 ms for the indexing itself.
+TensorDict machinery (the sampler/writer protocol, an ``"index"`` entry, a device cast), four times the indexing
+itself on the recipe's batches (``docs/performance.md``).
 
 :class:`BufferBatches` draws the *same* indices (the same ``torch.randint`` call on the same generator, so a run draws
 the same batches as through ``buffer.sample()``; tested) and gathers every entry of the storage with
 ``torch.index_select(..., out=...)`` into tensors allocated once (on the training device, so a device-resident
 buffer is sampled without a host sync). Each call wraps them in a fresh TensorDict shell, so a loss that writes an
 entry into its batch cannot leak it into the next one. The tensors are overwritten by the next draw: a batch is
-valid until the next ``sample()``.
+valid until the next ``sample()``. :class:`PairedSampler` draws stage 1's paired batches the same way: the behaviour
+indices, then the expert ones, each from its own buffer's generator, as the two buffers' ``sample()`` draw them.
 """
 from __future__ import annotations
 
@@ -19,7 +20,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
-__all__ = ["BufferBatches", "PairedBatches"]
+__all__ = ["BufferBatches", "PairedSampler", "STATE_ACTION_KEYS"]
+
+#: The entries of S^b and S^e the density ratio reads.
+STATE_ACTION_KEYS = ("observation", "action")
 
 
 class BufferBatches:
@@ -77,13 +81,28 @@ class BufferBatches:
         return self.gather(self.indices())
 
 
-class PairedBatches:
-    """``TensorDict({"behaviour": ..., "expert": ...})`` of the state-action keys, drawn as
-    :class:`~torchrl_wbrm.data.datasets.PairedSampler` draws them (the behaviour indices, then the expert ones)."""
+class PairedSampler:
+    """``TensorDict({"behaviour": S^b batch, "expert": S^e batch})`` of the state-action keys, ``batch_size`` rows each.
+
+    The behaviour indices are drawn first, then the expert ones, each as its buffer's ``RandomSampler`` draws them
+    (its ``sample()``, bit for bit): a fixed seed gives the same stream of batches whichever code asks for them. A
+    batch is overwritten by the next ``sample()``; ``clone()`` it to keep it.
+
+    Args:
+        behaviour: S^b's ``TensorDictReplayBuffer`` (a ``RandomSampler`` over a 1-d storage).
+        expert: S^e's.
+        batch_size: rows drawn from each.
+
+    Keyword Args:
+        keys: the entries drawn (defaults to ``("observation", "action")``).
+        device: where the batch lives (defaults to the storage's device).
+    """
 
     def __init__(self, behaviour: TensorDictReplayBuffer, expert: TensorDictReplayBuffer, batch_size: int, *,
-                 keys=("observation", "action"), device=None):
-        keep = set(keys)
+                 keys=STATE_ACTION_KEYS, device=None):
+        if batch_size <= 0:
+            raise ValueError(f"batch_size must be > 0, got {batch_size}.")
+        keep = {k if isinstance(k, str) else k[0] for k in keys}  # top-level names (a nested key keeps its head)
         self.batch_size = int(batch_size)
         self._sides = {}
         for name, buffer in (("behaviour", behaviour), ("expert", expert)):
