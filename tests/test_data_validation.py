@@ -87,8 +87,21 @@ def bad_data(tmp_path_factory) -> dict:
     }
     for dataset_id, (episodes, env) in written.items():
         write_minari_dataset(dataset_id, episodes, data_path=root, **env)
+    for dataset_id, entry_point in FORGED.items():  # a recorded env spec whose entry point would write a file
+        write_minari_dataset(dataset_id, _episodes(4, seed=11), data_path=root, env=PENDULUM)
+        metadata = root / dataset_id / "data" / "metadata.json"
+        meta = json.loads(metadata.read_text())
+        spec = json.loads(meta["env_spec"])
+        spec.update(entry_point=entry_point, kwargs={"file": "MARKER", "mode": "w"})
+        meta["env_spec"] = json.dumps(spec)
+        metadata.write_text(json.dumps(meta))
     assert same_spaces == "torchrl_wbrm/Pendulum_a1-v1"
     return {"data_path": str(root), "saved": _saved_dataset_with_nan(tmp_path_factory.mktemp("saved_bad"))}
+
+
+#: datasets whose recorded env spec names another entry point than gymnasium's for Pendulum-v1; gymnasium.make of
+#: the spec would call ``builtins.open("MARKER", "w")`` in the directory the command runs in
+FORGED = {"forged/expert-v0": "builtins:open"}
 
 
 def _saved_dataset_with_nan(path: Path) -> dict:
@@ -150,6 +163,10 @@ CLI_CASES = {
                        ["different envs", "from 'Pendulum-v1'", "from 'torchrl_wbrm/Pendulum_a1-v1'"]),
     "empty_dataset": (lambda d: _minari(d, "good/expert-v0", "empty/behaviour-v0"),
                       ["Minari behaviour dataset 'empty/behaviour-v0' holds no steps (0 episodes)"]),
+    "recorded_entry_point_not_gymnasiums": (
+        lambda d: _minari(d, "forged/expert-v0", "good/behaviour-v0"),
+        ["Minari dataset 'forged/expert-v0' records the env 'Pendulum-v1' with the entry point 'builtins:open'",
+         "not the registered 'gymnasium.envs.classic_control.pendulum:PendulumEnv'", "is not run"]),
     "nan_in_a_saved_dataset": (lambda d: ["env=lqr_exp1", f"env.lqr_data.dataset_dir={d['saved']['path']}"],
                                ["its transitions set: episode", "step 2 (row", "'next/reward' is nan"]),
 }
@@ -279,3 +296,21 @@ def test_check_finite_names_the_episode_step_and_key():
         check_finite(td, "The set")
     with pytest.raises(ValueError, match=r"^The set: row 4: 'next/reward' is -inf;"):
         check_finite(td.exclude("episode"), "The set")
+
+
+def test_a_recorded_entry_point_is_not_run(bad_data, tmp_path, monkeypatch):
+    """The forged dataset's spec would run its entry point under ``gymnasium.make`` (shown first, in a folder of its
+    own); the data check refuses it unrun, and ``env.minari.eval_env`` (a registered id) makes the run possible."""
+    import gymnasium as gym
+    from gymnasium.envs.registration import EnvSpec
+
+    meta = json.loads((Path(bad_data["data_path"]) / "forged/expert-v0/data/metadata.json").read_text())
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Exception):
+        gym.make(EnvSpec.from_json(meta["env_spec"]))
+    assert (tmp_path / "MARKER").exists()  # the payload is real
+    (tmp_path / "MARKER").unlink()
+    with pytest.raises(ValueError, match="'builtins:open'.*is not run"):
+        check_minari_data(_config(bad_data, "forged/expert-v0", "good/behaviour-v0"))
+    assert list(tmp_path.iterdir()) == []
+    check_minari_data(_config(bad_data, "forged/expert-v0", "good/behaviour-v0", eval_env=PENDULUM))

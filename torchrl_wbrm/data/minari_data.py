@@ -342,6 +342,7 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
     and every observation, action and reward is finite and every action lies in the action space; the behaviour
     dataset holds enough episodes to split. A refusal is a one-line ``ValueError`` (``FileNotFoundError`` for a
     dataset not on disk) naming the dataset and, for a bad value, the episode, the first offending step and the key.
+Without ``eval_env``, the env recorded in the datasets must be gymnasium's registered one (:func:`trusted_env_spec`).
 
     ``keep=True`` holds the data read for the next :func:`make_minari_datasets` on the same, unchanged files (once):
     a run checks its data before it writes anything, and its trainer then reads them once only.
@@ -356,6 +357,12 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
             f"are needed (env.minari.ratio_fraction={data.ratio_fraction}: S^b takes at least one episode and D keeps "
             f"at least two, which the trainer splits into its training and held-out sets)."
         )
+    if not data.eval_env:  # the evaluation env is made from the recorded spec: refused now if that would run code
+        for ds in pair[:2]:
+            spec = _recorded_spec(ds)
+            if spec is not None:
+                trusted_env_spec(spec, {"expert_dataset": data.expert})
+                break
     if keep:
         _HELD_PAIR.hold(key, pair)
 
@@ -457,6 +464,57 @@ def _recorded_max_steps(dataset) -> int | None:
     return None if spec is None else spec.max_episode_steps
 
 
+#: entry points of this package that a dataset may record (``register_reshaped_env``'s envs): they make a registered
+#: gymnasium env by its id and reshape it, nothing else
+PACKAGE_ENTRY_POINTS = ("torchrl_wbrm.data.minari_examples:make_reshaped_env",)
+
+
+def trusted_env_spec(spec, metadata: dict | None = None):
+    """``spec`` (a gymnasium ``EnvSpec`` read from a dataset) if making it runs only registered code.
+
+    ``gymnasium.make`` of a spec imports and calls its ``entry_point`` and its ``additional_wrappers``' entry points,
+    and a dataset file can name any importable callable there. So a recorded spec is used only when its entry point
+    is the one gymnasium has registered for its id in this process (or one of :data:`PACKAGE_ENTRY_POINTS`), and
+    each of its wrappers is one of gymnasium's own (``gymnasium.wrappers``); anything else is refused in one line
+    naming the dataset and the entry point. An env of your own: register it (import the package that registers it)
+    and pass ``env.minari.eval_env=<its id>``, which makes the registered env and ignores the recorded spec.
+
+        >>> from gymnasium.envs.registration import EnvSpec
+        >>> trusted_env_spec(EnvSpec("Pendulum-v1", entry_point="gymnasium.envs.classic_control.pendulum:PendulumEnv")).id
+        'Pendulum-v1'
+        >>> trusted_env_spec(EnvSpec("Pendulum-v1", entry_point="os:system"))
+        Traceback (most recent call last):
+        ...
+        ValueError: The Minari dataset None records the env 'Pendulum-v1' with the entry point 'os:system', not the registered 'gymnasium.envs.classic_control.pendulum:PendulumEnv'; a recorded entry point is not run. Pass env.minari.eval_env=<gymnasium id> to evaluate on a registered env.
+    """
+    import gymnasium as gym
+
+    name = None if metadata is None else metadata.get("expert_dataset")
+    if spec.entry_point not in PACKAGE_ENTRY_POINTS:
+        registered = gym.registry.get(spec.id)
+        if registered is None:
+            raise ValueError(
+                f"The Minari dataset {name!r} records the env {spec.id!r}, which gymnasium has not registered in this "
+                f"process; its recorded entry point {spec.entry_point!r} is not run. Register the env (import the "
+                f"package that registers it) and pass env.minari.eval_env={spec.id}."
+            )
+        if spec.entry_point != registered.entry_point:
+            raise ValueError(
+                f"The Minari dataset {name!r} records the env {spec.id!r} with the entry point {spec.entry_point!r}, "
+                f"not the registered {registered.entry_point!r}; a recorded entry point is not run. Pass "
+                f"env.minari.eval_env=<gymnasium id> to evaluate on a registered env."
+            )
+    for wrapper in spec.additional_wrappers or ():
+        entry = str(getattr(wrapper, "entry_point", ""))
+        if not entry.startswith("gymnasium.wrappers"):
+            raise ValueError(
+                f"The Minari dataset {name!r} records the env {spec.id!r} with the wrapper {entry!r}, which is not one "
+                f"of gymnasium's own (gymnasium.wrappers); it is not run. Pass env.minari.eval_env={spec.id} to "
+                f"evaluate on the registered env."
+            )
+    return spec
+
+
 def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
     """The torchrl env of the datasets' gymnasium env (``metadata`` of :func:`make_minari_datasets`).
 
@@ -492,7 +550,7 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
             f"gymnasium env to evaluate on: pass env.minari.eval_env=<gymnasium id>."
         )
     recorded = metadata.get("eval_env_spec")
-    genv = gym.make(EnvSpec.from_json(recorded) if recorded else env_id)
+    genv = gym.make(trusted_env_spec(EnvSpec.from_json(recorded), metadata) if recorded else env_id)
     action_shape = metadata.get("action_shape")
     if action_shape is not None:
         if not isinstance(genv.action_space, gym.spaces.Box) or list(genv.action_space.shape) != list(action_shape):
