@@ -2,6 +2,7 @@
 
     python recipes/wbrm_offline.py                                  # LQR exp1, the default (about a minute)
     python recipes/wbrm_offline.py env=lqr_exp3 seed=2
+    python recipes/wbrm_offline.py seeds=[0,1,2,3,4]                # five seeds in one process (docs/guides/seeds.md)
     python recipes/wbrm_offline.py env=mountain_car q.gamma=0.99
     python recipes/wbrm_offline.py ratio.source=none                # the unweighted ablation
     python recipes/wbrm_offline.py algo=td3bc                       # a baseline on the same data (torchrl_wbrm/algos/)
