@@ -14,6 +14,7 @@ from torchrl.objectives import LossModule
 
 from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
+from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate  # torchrl's SoftUpdate, one foreach lerp per step
 from torchrl_wbrm.objectives.functional import td3bc_lambda
 
@@ -218,10 +219,19 @@ class ExpertCloning:
         """``loss_q = −mean_D Q(x, μ(x))`` and ``q_mean_abs = |mean_D Q(x, μ(x))|``; returns the actor's loss and the
         cloning term (detached)."""
         expert = self.buffer.sample()
-        with params.to_module(self.actor):
-            mu = self.actor(expert.select(*self.actor.in_keys))["action"]
+        inputs = {key: expert.get(key) for key in self.actor.in_keys}
+        mu = self.network_call(params)(params, inputs, expert.batch_size)
         bc = ((mu - expert["action"]) / self.half_width.to(mu.device)).pow(2).mean()
         return td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc, {"expert_bc_loss": bc.detach()}
+
+    def network_call(self, params) -> NetworkCall:
+        """How μ is called: a :class:`~torchrl_wbrm.objectives._fast.NetworkCall` of the actor, built on the first
+        ``params`` seen (the loss's ``actor_network_params``: their tensors go straight into the actor's slots) and
+        kept; the same μ, gradient included, as ``with params.to_module(actor): actor(td)``."""
+        call = self.__dict__.get("_network_call")
+        if call is None:
+            call = self._network_call = NetworkCall(self.actor, params, "action", why="the actor's action")
+        return call
 
 
 def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, updater=None, every_step=False,

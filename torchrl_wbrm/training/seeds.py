@@ -113,9 +113,6 @@ class _Flat(dict):
     def detach(self) -> "_Flat":
         return _Flat({k: v.detach() for k, v in super().items()})
 
-    def to_module(self, module, **kwargs):
-        return TensorDict(dict(super().items())).unflatten_keys(".").to_module(module, **kwargs)
-
 
 def _flat(td: TensorDictBase) -> dict:
     return {".".join(k) if isinstance(k, tuple) else k: v for k, v in td.items(True, True)}
@@ -443,6 +440,7 @@ class _QUpdate:
         self._saved_buffer = None
         if self.cloning is not None:
             self._saved_buffer = self.cloning.buffer
+            self.cloning.network_call(loss0.actor_network_params)  # built on the loss's own parameters
             keys = set(self.cloning.actor.in_keys) | {"action"}
             self.expert = _StackedBatches([BufferBatches(c.buffer, qc.batch_size) for c in clonings], keys)
         self.reward_key = ("next", loss0.tensor_keys.reward)
