@@ -2,26 +2,10 @@
 from __future__ import annotations
 
 import os
+from collections import Counter
 
 import pytest
 import torch
-
-#: The test files that take the longest, slowest first, each with the sum of its entries among the 70 slowest of one
-#: ``pytest -q -n 2 --dist loadfile --durations=70`` run here (2 cores, 3 December 2026). The README's test command passes
-#: ``--no-loadscope-reorder``, so pytest-xdist hands files out in collection order, and this order makes that the
-#: longest-first rule: while one worker runs test_baselines.py, the other takes the next ones. xdist's own order
-#: (files with the most tests first) left the few-test, minute-long subprocess files for last, one worker running
-#: them while the other idled. A file not listed keeps its place after these; a stale list costs balance only.
-SLOWEST_FILES = (
-    "test_benchmark_learning.py",  # about 4 min under load (each benchmark task at two budgets); idle: to measure
-    "test_baselines.py",  # 193 s: every algo's learning tests and the recipe for every algo
-    "test_recipes.py",  # 105 s
-    "test_studies_quick.py",  # 195 s under load (paper_tables --quick runs every registered algorithm: 129 s)
-    "test_first_hour.py",  # 90 s under load (the README commands as a user types them)
-    "test_examples.py",  # 56 s
-    "test_launchers.py",  # 44 s
-    "test_minari.py",  # 43 s
-)
 
 
 def pytest_configure(config):
@@ -36,9 +20,18 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    """The files of ``SLOWEST_FILES`` first, slowest first; every other test keeps its order after them."""
-    rank = {name: i for i, name in enumerate(SLOWEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the order within a file is kept
+    """Files holding ``slow``-marked tests first, the most slow tests first; every other file keeps its place after.
+
+    The README's test command passes ``--no-loadscope-reorder``, so pytest-xdist hands whole files (``--dist
+    loadfile``) to its workers in this order: the long files start first, one per worker, and the many short ones fill
+    in behind them, instead of a minute-long file starting last while the other worker idles. A test that takes more
+    than a few seconds is marked ``slow`` where it is written; nothing here names a file.
+    """
+    slow = Counter(item.path for item in items if item.get_closest_marker("slow") is not None)
+    first = {}
+    for index, item in enumerate(items):
+        first.setdefault(item.path, index)
+    items.sort(key=lambda item: (-slow[item.path], first[item.path]))  # stable: the order within a file is kept
 
 
 @pytest.fixture

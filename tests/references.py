@@ -98,7 +98,7 @@ def compose_recipe(*overrides: str, config_name: str = "wbrm_offline"):
         return compose(config_name, overrides=[*overrides, "threads=1"])
 
 
-#: the tiny LQR run of the reliability tests (tests/test_reliability_*.py): 2×16 networks, a few dozen steps
+#: the tiny LQR run of the run-directory, resume and trainer-stop tests: 2×16 networks, a few dozen steps
 TINY_LQR = {
     "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
     "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},

@@ -61,6 +61,7 @@ def regrets():
     return reference_regrets("exp1")
 
 
+@pytest.mark.slow
 def test_weighted_td3bc_learns(outputs, regrets):
     """TorchRL's TD3BCLoss with ŵ as priority_weight: the quick run's regret is below half the zero action's (the
     actor starts at a ≈ 0). It learns slowly: TD3+BC's cloning term (an unweighted batch mean in TorchRL) pulls the
@@ -71,12 +72,14 @@ def test_weighted_td3bc_learns(outputs, regrets):
     assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_wbrm_in_a_ddpg_loop_beats_the_behaviour_policy(outputs, regrets):
     """WeightedBellmanLoss as the critic loss of an offline DDPG loop: regret below half the behaviour mean's."""
     regret = _figure(outputs["wbrm_ddpg_lqr"], "WBRM (DDPG loop)")
     assert regret < regrets["behaviour_mean"] / 2, regret
 
 
+@pytest.mark.slow
 def test_discrete_wbrm_on_cartpole_beats_the_behaviour_data(outputs):
     """WeightedBellmanLoss with a QValueActor: the greedy policy's return is at least twice the behaviour data's;
     TorchRL's DQNLoss on the same data is reported beside it and beats the data too."""
@@ -87,12 +90,14 @@ def test_discrete_wbrm_on_cartpole_beats_the_behaviour_data(outputs):
     assert behaviour < 100 and wbrm > 2 * behaviour and dqn > behaviour, (behaviour, wbrm, dqn)
 
 
+@pytest.mark.slow
 def test_weighted_ddpg_learns(outputs, regrets):
     """TorchRL's DDPGLoss with ŵ as priority_weight: regret below half the behaviour mean's."""
     weighted = _figure(outputs["weighted_ddpg_lqr"], "ŵ-weighted DDPG")
     assert weighted < regrets["behaviour_mean"] / 2, weighted
 
 
+@pytest.mark.slow
 def test_weighted_iql_learns(outputs, regrets):
     """TorchRL's IQLLoss with ŵ through WeightedLoss, and its unweighted twin: both well below the behaviour mean's
     regret (the actors start near the zero action, regret 0.36), the weighted one by a margin of a fifth; the two
@@ -127,6 +132,7 @@ def test_examples_use_only_public_api():
         assert imports and all(m.count(".") == 1 for m in imports), (path, imports)  # package-level names
 
 
+@pytest.mark.slow
 def test_the_docs_show_what_the_example_prints(outputs):
     """The tutorial's output block of examples/wbrm_ddpg_lqr.py is what the quick run printed: the same lines, each
     figure within 0.003 (another CPU may round the last digits of a float computation differently)."""

@@ -28,7 +28,7 @@ import pytest
 
 from tests.test_recipes import ROOT, TINY_LQR, run_recipe
 
-pytestmark = pytest.mark.launchers
+pytestmark = [pytest.mark.launchers, pytest.mark.slow]
 
 RAY_CLI = Path(sys.executable).with_name("ray")
 START_TIMEOUT_S = 120

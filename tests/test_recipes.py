@@ -12,6 +12,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
+pytestmark = pytest.mark.slow  # each test runs a recipe in a subprocess
+
 TINY_LQR = [
     "env.lqr_data.behaviour_episodes=40",
     "env.lqr_data.expert_episodes=20",
@@ -82,7 +84,7 @@ def test_wbrm_offline_mountain_car(tmp_path):
 
 def test_wbrm_offline_resume_continues_exactly(tmp_path):
     # a larger budget continues a constant learning rate; a cosine schedule's length is its budget, so there a larger
-    # q.steps on resume is refused (tests/test_reliability*.py)
+    # q.steps on resume is refused (tests/test_resume.py)
     a, b = tmp_path / "a", tmp_path / "b"
     constant = "q.lr_schedule=constant"
     run_recipe("wbrm_offline.py", *TINY_LQR, constant, "q.steps=30", "checkpoint_every=10", f"hydra.run.dir={a}",

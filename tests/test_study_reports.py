@@ -1,5 +1,5 @@
 """The studies' reports on synthetic results: the convergence slopes' bootstrap intervals, the paper tables' learning
-curves and "budget and convergence" table, and the LQR tables over every LQR env that ran (issue 16).
+curves and "budget and convergence" table, and the LQR tables over every LQR env that ran.
 
 No training: each test writes the ``results.json`` / ``history.json`` fields the report reads into ``tmp_path``.
 """

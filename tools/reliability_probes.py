@@ -11,7 +11,7 @@ errors that must name their key, and resumes that must leave no stray directory.
 Each probe runs ``python recipes/wbrm_offline.py`` (and ``recipes/make_dataset.py``) in subprocesses in a fresh
 temporary folder and checks exit codes, messages and files; one line per probe, ``PASS`` or ``FAIL`` with what was
 seen, and the exit status is the number of failures. The same cases run in CI, faster and in process, as
-``tests/test_reliability_dirs.py`` and ``tests/test_reliability_checks.py``; this script is the end-to-end check of
+``tests/test_rundir.py`` and ``tests/test_trainer_stops.py``; this script is the end-to-end check of
 the commands themselves (signals, concurrent processes, Hydra's own files).
 """
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """Mutation check: does the test suite catch a deliberately broken method?
 
-    python benchmarks/mutation_check.py                 # every mutation, each against its own subset of the suite
-    python benchmarks/mutation_check.py --only drop_weights skip_restore
-    python benchmarks/mutation_check.py --full          # each mutation against the whole suite (-x; much slower)
-    python benchmarks/mutation_check.py --list
-    python benchmarks/mutation_check.py --dry-run       # apply each mutation to a copy and count the lines it changes
+    python tools/mutation_check.py                 # every mutation, each against its own subset of the suite
+    python tools/mutation_check.py --only drop_weights skip_restore
+    python tools/mutation_check.py --full          # each mutation against the whole suite (-x; much slower)
+    python tools/mutation_check.py --list
+    python tools/mutation_check.py --dry-run       # apply each mutation to a copy and count the lines it changes
 
 For each breakage in :data:`MUTATIONS` it copies the working tree to a temporary directory, applies the one change
 there (each equation and each step is implemented once, so a mutation replaces a fragment found exactly once),

@@ -1,4 +1,4 @@
-"""Nothing lost, nothing silent (issue 11): dataset integrity and the data cache.
+"""torchrl_wbrm.data.datasets: saved datasets' integrity, and the data cache.
 
 Every failure case asserts the error type and that the message names the file, key or shape; the load tests also
 check that nothing on disk changed.

@@ -1,4 +1,4 @@
-"""The run's figures, read back from matplotlib: each loss on its own panel and scale, every panel's y-axis
+"""torchrl_wbrm.training.plots: the run's figures, read back from matplotlib: each loss on its own panel and scale, every panel's y-axis
 labelled, and the datasets' returns drawn beside the evaluation return."""
 from __future__ import annotations
 

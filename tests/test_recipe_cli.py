@@ -1,7 +1,8 @@
-"""A new user's first hour: the README's commands as a user types them, and what they print and draw.
+"""The recipe commands (``wbrm-offline``, ``make_dataset``, the studies, the examples) as the README writes them, and
+what they print and draw.
 
 - DQN evaluates on a single episode (a batch of one), so ``paper_tables --quick`` runs every registered algorithm
-  (that run: tests/test_studies_quick.py);
+  (that run: tests/test_studies.py);
 - the two Minari dataset writers never collide, and an existing id or dataset is refused before any collecting;
 - the resume command a run prints works exactly as printed;
 - the console: no library [INFO] lines or foreign warnings by default, a config error is one line;
@@ -59,6 +60,7 @@ def test_the_action_grid_keeps_a_batch_of_one():
     assert one_hot(torch.tensor([2])).tolist() == [[0.0, 0.0, 1.0]]
 
 
+@pytest.mark.slow
 def test_dqn_evaluates_on_a_single_episode(tmp_path):
     """The reproduction from the report: ``algo=dqn eval.train_episodes=1`` (and ``eval.episodes=1``)."""
     proc = recipe("algo=dqn", *TINY, "eval.train_episodes=1", "eval.episodes=1", "logger=none", "plots=false",
@@ -81,6 +83,7 @@ def _make_dataset_cfg(*dotlist: str):
     return OmegaConf.merge(OmegaConf.structured(MakeDatasetConfig), OmegaConf.from_dotlist(["format=minari", *dotlist]))
 
 
+@pytest.mark.slow
 def test_make_dataset_and_the_examples_never_share_an_id(tmp_path):
     """Both writers into one Minari data path, for the same env: four ids, each saying what made it."""
     from torchrl_wbrm.data.minari_examples import make_mountain_car_datasets
@@ -192,6 +195,7 @@ def test_resume_restores_the_runs_own_overrides(tmp_path):
     assert with_run_overrides([f"resume={tmp_path / 'none'}"]) == [f"resume={tmp_path / 'none'}"]
 
 
+@pytest.mark.slow
 def test_the_printed_resume_command_works_as_printed(tmp_path):
     """A run started with overrides (and the default dated run directory) is interrupted; the command it prints is
     run exactly as printed and finishes the run with the overrides it started with."""
@@ -314,6 +318,7 @@ def test_a_config_error_is_one_line(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_the_recipe_writes_no_empty_log(tmp_path):
     proc = recipe(*TINY, "logger=none", "plots=false", f"hydra.run.dir={tmp_path}")
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -351,6 +356,7 @@ def test_a_quick_study_never_writes_into_the_full_ones_folder(study, monkeypatch
         assert outs[-1] == expected
 
 
+@pytest.mark.slow
 def test_the_examples_command_is_quiet(tmp_path):
     """``python -m torchrl_wbrm.data.minari_examples`` (a README command): its two lines, nothing on stderr (no
     runpy warning about the module being imported before it runs, no library INFO line)."""

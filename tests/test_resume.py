@@ -1,4 +1,5 @@
-"""Nothing lost, nothing silent (issue 11): run directories, resume, signals, divergence, plots, summaries, config.
+"""Resuming a run, and what refuses or stops one: run directories, resume, signals, divergence, plots, summaries,
+config.
 
 Each failure case asserts the error type and that the message names the key, file or setting; the run-directory
 and resume tests check that nothing on disk changed.

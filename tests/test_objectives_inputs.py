@@ -1,4 +1,4 @@
-"""Nothing lost, nothing silent (issue 11): strict inputs of the LossModules, LQREnv.step and LQRConfig.
+"""Strict inputs of the LossModules (torchrl_wbrm.objectives), LQREnv.step and LQRConfig.
 
 Each case asserts the error type and that the message names the key or shape.
 """

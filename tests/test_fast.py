@@ -1,5 +1,5 @@
-"""The hot-path shortcuts compute exactly what the TensorDict paths compute (no timings are asserted here; the
-figures are printed by benchmarks/)."""
+"""torchrl_wbrm.objectives._fast and torchrl_wbrm.data.sampling: the hot-path shortcuts compute exactly what the
+TensorDict paths compute (no timings are asserted here; the figures are printed by benchmarks/)."""
 from __future__ import annotations
 
 import copy

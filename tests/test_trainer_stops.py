@@ -1,4 +1,4 @@
-"""Nothing silent: a failed stage 1 is flagged, an interrupt during an evaluation stops at once and resumes exactly,
+"""The trainer's flags and stops: a failed stage 1 is flagged, an interrupt during an evaluation stops at once and resumes exactly,
 a saved dataset is never served stale from the data cache, and config and data errors name the key, the dataset and
 what is expected (before any data are collected where the config alone tells)."""
 from __future__ import annotations

@@ -8,7 +8,11 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from tests.references import ROOT
+
+pytestmark = pytest.mark.slow  # each test runs a study in a subprocess
 
 
 def run_study(script: str, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:

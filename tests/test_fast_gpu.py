@@ -14,7 +14,7 @@ pytestmark = [
 
 
 def _data(n=512):
-    from tests.test_speed import _data as data
+    from tests.test_fast import _data as data
 
     return data(n)
 
@@ -68,7 +68,7 @@ def test_wbrm_update_on_cuda_without_a_sync():
 def test_lqr_rollout_on_cuda_equals_torchrl_rollout():
     from torchrl.envs import EnvBase
 
-    from tests.test_speed import _NoisyLinearPolicy
+    from tests.test_fast import _NoisyLinearPolicy
     from torchrl_wbrm.envs import LQREnv
 
     envs = [LQREnv("exp1", batch_size=[64], device="cuda", seed=0) for _ in range(2)]
