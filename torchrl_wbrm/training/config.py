@@ -270,6 +270,9 @@ class WBRMConfig:
     data_cache: Optional[str] = None
     resume: Optional[str] = None
     overwrite: bool = False
+    plots: bool = True
+    verbose: bool = False
+
     def __post_init__(self):
         if isinstance(self.env, str):  # a name of the recipe's env group, as ``env=lqr_exp1`` on its command line
             self.env = env_config(self.env)
@@ -300,9 +303,6 @@ def env_config(name: str) -> EnvConfig:
         for key in [k for k in ("expert", "behaviour") if OmegaConf.is_missing(node.minari, k)]:
             del node.minari[key]  # mandatory on the command line (``???``): the schema's empty value here
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), node))
-
-    plots: bool = True
-    verbose: bool = False
 
 
 @dataclass
