@@ -625,7 +625,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (torchrl_wbrm/algos/).")
     if not args.report_only:
-        from torchrl_wbrm.training.guards import write_json
+        from torchrl_wbrm.training.results import write_json
         from torchrl_wbrm.training.runs import run_cells, study_budget
 
         os.environ.setdefault("MPLBACKEND", "Agg")

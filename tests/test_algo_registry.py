@@ -245,7 +245,7 @@ def test_a_finished_run_is_reused_only_under_its_own_settings(tmp_path):
     """``run_overrides`` reads a finished run back without training, if it ran with the same config; a changed
     setting that changes a figure is refused by name, one that cannot (threads, plots, the logger) is not."""
     from torchrl_wbrm.training.runs import compose_recipe_config, run_overrides
-    from torchrl_wbrm.training.trainer import config_as_dict
+    from torchrl_wbrm.training.config import config_as_dict
 
     overrides = ["algo=brm", "env=lqr_exp1", "q.steps=7", "logger=none", "plots=false"]
     saved = {"status": "finished", "final": {"regret": 0.5}, "config": config_as_dict(compose_recipe_config(overrides))}

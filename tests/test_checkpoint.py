@@ -11,7 +11,7 @@ A run killed with SIGKILL (nothing caught, nothing flushed) and resumed with the
 the figures of the uninterrupted run, exactly.
 
 The kill points are made deterministic by the writers' test hook (``TORCHRL_WBRM_TEST_PAUSE_AT``,
-:func:`torchrl_wbrm.training.guards.pause_for_test`): the recipe stops at the named point, says so on stderr, and
+:func:`torchrl_wbrm.training.results.pause_for_test`): the recipe stops at the named point, says so on stderr, and
 waits to be killed. Points: during stage 1 and during stage 2 (at a step), while a checkpoint is being written (its
 new content on disk in the temporary file, not yet renamed), and while ``results.json`` is being written.
 """
@@ -33,7 +33,7 @@ import torch
 
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
-from torchrl_wbrm.training.guards import TEST_PAUSE_ENV
+from torchrl_wbrm.training.results import TEST_PAUSE_ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -67,7 +67,7 @@ def test_an_env_named_by_string_is_the_recipes_env(env):
     """``WBRMConfig(env="<name>")`` equals ``python recipes/wbrm_offline.py env=<name>`` for every key, before and
     after the env's task fills what the config leaves null (γ, the support term, the budget, ...)."""
     from torchrl_wbrm.data.tasks import get_task
-    from torchrl_wbrm.training.trainer import _to_config
+    from torchrl_wbrm.training.config import to_config
 
     composed = _compose(f"env={env}", *(f"{k}={v}" for k, v in REQUIRED.get(env, {}).items()))
     api = WBRMConfig(env=env)
@@ -75,8 +75,8 @@ def test_an_env_named_by_string_is_the_recipes_env(env):
         assert OmegaConf.select(OmegaConf.structured(api), key) == ""
         setattr(api.env.minari, key.rsplit(".", 1)[1], value)
     assert _as_flat(api) == _as_flat(OmegaConf.to_object(composed))
-    recipe = _to_config(composed)
-    assert _as_flat(_to_config(api)) == _as_flat(recipe)
+    recipe = to_config(composed)
+    assert _as_flat(to_config(api)) == _as_flat(recipe)
     task = get_task(recipe.env)
     for key, value in task.training_defaults().items():  # every env-derived setting came from the task
         section, name = key.split(".")

@@ -213,32 +213,32 @@ def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
     config leaves them null and resolve_defaults fills them, so the Python API gets the same values."""
     from torchrl_wbrm.data.tasks import LQRTask, MinariTask, MountainCarTask
     from torchrl_wbrm.training import WBRMConfig, resolve_defaults
-    from torchrl_wbrm.training.trainer import _to_config
+    from torchrl_wbrm.training.config import to_config
 
     mc = _compose("env=mountain_car")
     assert mc.q.bc_alpha is None and mc.q.steps is None and mc.q.gamma is None  # nothing env-specific in YAML
-    resolved = _to_config(mc)
+    resolved = to_config(mc)
     for key, value in MountainCarTask.TRAINING_DEFAULTS.items():
         section, name = key.split(".")
         assert getattr(getattr(resolved, section), name) == value, key
     assert resolved.q.gamma == MountainCarTask.default_gamma == 0.9999
     assert resolved.q.bc_alpha == 10.0 and resolved.q.expert_bc_alpha == 0 and resolved.q.normalise_observations
     # the Python API, from the schema alone, resolves to the same config as the recipe
-    api = resolve_defaults(WBRMConfig(env=_to_config(mc).env, threads=1))  # threads: the recipe's one difference
+    api = resolve_defaults(WBRMConfig(env=to_config(mc).env, threads=1))  # threads: the recipe's one difference
     assert api == resolved
-    lqr = _to_config(_compose("env=lqr_exp1"))
+    lqr = to_config(_compose("env=lqr_exp1"))
     assert lqr.q.expert_bc_alpha == LQRTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0
     assert not lqr.q.normalise_observations and lqr.q.gamma == 0.9 and lqr.eval.episodes == 1000
     assert MinariTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0  # the shared default, not MountainCar's
-    assert _to_config(_compose("env=mountain_car", "q.bc_alpha=1.0")).q.bc_alpha == 1.0  # the command line wins
-    assert _to_config(_compose("env=mountain_car", "q.steps=7")).q.steps == 7
+    assert to_config(_compose("env=mountain_car", "q.bc_alpha=1.0")).q.bc_alpha == 1.0  # the command line wins
+    assert to_config(_compose("env=mountain_car", "q.steps=7")).q.steps == 7
     # one support term: choosing one leaves the other off; both on is refused by name
-    chosen = _to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5")).q
+    chosen = to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5")).q
     assert (chosen.bc_alpha, chosen.expert_bc_alpha) == (2.5, 0.0)
-    chosen = _to_config(_compose("env=mountain_car", "q.expert_bc_alpha=1.0")).q
+    chosen = to_config(_compose("env=mountain_car", "q.expert_bc_alpha=1.0")).q
     assert (chosen.bc_alpha, chosen.expert_bc_alpha) == (0.0, 1.0)
     from torchrl_wbrm.training.config import validate_config
 
     with pytest.raises(ValueError, match="q.bc_alpha=2.5 .* q.expert_bc_alpha=1.5"):
-        validate_config(_to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5", "q.expert_bc_alpha=1.5")))
-    assert _to_config(_compose("env=mountain_car", "algo=td3bc")).q.gamma == 0.9999  # baselines get them too
+        validate_config(to_config(_compose("env=lqr_exp1", "q.bc_alpha=2.5", "q.expert_bc_alpha=1.5")))
+    assert to_config(_compose("env=mountain_car", "algo=td3bc")).q.gamma == 0.9999  # baselines get them too

@@ -18,7 +18,7 @@ from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.ratio import DensityRatioFitter, compute_density_ratio, fit_density_ratio
 from torchrl_wbrm.training import WBRMTrainer
-from torchrl_wbrm.training.guards import json_safe
+from torchrl_wbrm.training.results import json_safe
 from torchrl_wbrm.training.reporting import summarise
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test

@@ -23,7 +23,8 @@ from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.algos import ALGOS
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
-from torchrl_wbrm.training.guards import CONTINUABLE_KEYS, RunInterrupted
+from torchrl_wbrm.training.resume import CONTINUABLE_KEYS
+from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.plots import LOSS_TITLES
 
 ROOT = Path(__file__).resolve().parents[1]

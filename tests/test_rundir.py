@@ -2,7 +2,7 @@
 nothing on disk (Hydra's ``.hydra/`` record included), ``overwrite=true`` without old logs, resumes without stray
 directories.
 
-The recipe's checks run in a Hydra callback (:class:`~torchrl_wbrm.training.guards.RunDirGuard`) before Hydra writes
+The recipe's checks run in a Hydra callback (:class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard`) before Hydra writes
 anything; most tests call it on a composed config, two run the recipe itself in subprocesses.
 """
 from __future__ import annotations
@@ -21,7 +21,8 @@ from omegaconf import open_dict
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig
-from torchrl_wbrm.training.guards import RunDirGuard, RunDirInUse, claim_run_dir, take_claim
+from torchrl_wbrm.training.hydra_guard import RunDirGuard
+from torchrl_wbrm.training.rundir import RunDirInUse, claim_run_dir, take_claim
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the recipe's tiny budget (the issue's, with tiny data and networks)

@@ -20,7 +20,7 @@ from torchrl_wbrm.data.factory import EnvConfig
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
-from torchrl_wbrm.training.guards import RunInterrupted
+from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.reporting import summarise
 
 

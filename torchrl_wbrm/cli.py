@@ -21,7 +21,10 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.data.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs, validate_config
-from torchrl_wbrm.training.guards import RunInterrupted, check_run_record, write_json
+from torchrl_wbrm.training.results import write_json
+from torchrl_wbrm.training.resume import check_run_record
+from torchrl_wbrm.training import stops
+from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.logging import make_logger
 from torchrl_wbrm.training.reporting import summarise
 
@@ -75,9 +78,7 @@ def recipe_command() -> str:
 def wbrm_offline() -> None:
     """``wbrm-offline [overrides]`` (``python recipes/wbrm_offline.py``, ``python -m torchrl_wbrm``): the recipe,
     with a resume's run overrides restored (:func:`with_run_overrides`), so ``resume=X`` alone continues the run."""
-    from torchrl_wbrm.training import guards
-
-    guards.RESUME_COMMAND = recipe_command()
+    stops.RESUME_COMMAND = recipe_command()
     try:
         sys.argv[1:] = with_run_overrides(sys.argv[1:])
     except ValueError as err:  # a run record holding more than the recipe's settings: one line, nothing applied

@@ -387,7 +387,7 @@ class OfflineDatasets:
 
 class HeldRead:
     """One read of files on disk, held for the next reader of the same files, once: a run's data are read and checked
-    before anything is written (:class:`~torchrl_wbrm.training.guards.RunDirGuard`), and its trainer takes that read
+    before anything is written (:class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard`), and its trainer takes that read
     instead of reading the files again. The key holds every file's size and modification time, so a file changed in
     between is read again."""
 

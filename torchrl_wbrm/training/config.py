@@ -11,10 +11,12 @@ from dataclasses import dataclass, field, make_dataclass
 from typing import List, Optional
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_wbrm.algos import ALGOS, store_algo_configs
 from torchrl_wbrm.data import EnvConfig
 from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.training.validation import validate_run_settings
 
 __all__ = [
     "BaselinesConfig",
@@ -24,9 +26,11 @@ __all__ = [
     "QConfig",
     "RatioConfig",
     "WBRMConfig",
+    "config_as_dict",
     "env_config",
     "register_configs",
     "resolve_defaults",
+    "to_config",
     "validate_config",
 ]
 
@@ -246,7 +250,7 @@ class WBRMConfig:
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
         data_cache: a folder to keep collected datasets in, keyed by env config and seed (``None``: collect anew).
         resume: a run directory to resume from (``None``: a new run). Only the keys of
-            :data:`~torchrl_wbrm.training.guards.CONTINUABLE_KEYS` (a larger ``q.steps``, ``q.eval_every``,
+            :data:`~torchrl_wbrm.training.resume.CONTINUABLE_KEYS` (a larger ``q.steps``, ``q.eval_every``,
             ``checkpoint_every``, ``plots``, ``threads``, ``data_cache``) and the ``eval`` and ``logger`` settings may
             differ from the checkpoint's; any other change is refused, naming the key with its old and new value.
         overwrite: let a new run replace a run directory that already holds a checkpoint or results (refused
@@ -384,6 +388,26 @@ def resolve_defaults(cfg):
     return cfg
 
 
+def to_config(cfg) -> WBRMConfig:
+    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict (merged on the schema, so unknown keys fail), its null
+    settings resolved (:func:`resolve_defaults`): the recipe and the Python API run one method."""
+    if isinstance(cfg, WBRMConfig):
+        cfg = OmegaConf.structured(cfg)
+    elif not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
+    return resolve_defaults(OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)))
+
+
+def config_as_dict(cfg) -> dict:
+    """``cfg`` (a :class:`WBRMConfig` or a Hydra ``DictConfig`` of one) as the plain dict a run saves under
+    ``"config"`` in its checkpoint and ``results.json``. ``seeds`` appears only when set (a multi-seed run's), so a
+    one-seed run's config reads as those saved before the key existed."""
+    out = OmegaConf.to_container(OmegaConf.structured(to_config(cfg)))
+    if out.get("seeds") is None:
+        out.pop("seeds", None)
+    return out
+
+
 def validate_config(cfg) -> None:
     """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting.
 
@@ -451,8 +475,6 @@ def validate_config(cfg) -> None:
         if cfg.resume:
             raise ValueError(f"seeds={seeds} cannot be resumed (resume={cfg.resume!r}): a multi-seed run writes no "
                              "checkpoint; run it again, or resume one seed's run started with seed=<s>.")
-    from torchrl_wbrm.training.guards import validate_run_settings
-
     validate_run_settings(cfg)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
 
 
@@ -463,12 +485,3 @@ def register_configs() -> None:
     cs.store(name="base_wbrm_offline", node=WBRMConfig)
     cs.store(name="base_make_dataset", node=MakeDatasetConfig)
     store_algo_configs(cs, BaselinesConfig)
-
-
-def __getattr__(name: str):
-    """The algos' config dataclasses by their names (``TD3BCConfig``, ...), which lived here before they moved to
-    their algorithm's file under :mod:`torchrl_wbrm.algos`."""
-    for spec in ALGOS.values():
-        if spec.config is not None and spec.config.__name__ == name:
-            return spec.config
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

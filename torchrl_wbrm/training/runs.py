@@ -67,10 +67,10 @@ def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline
 
 def finished_results(run_dir: str | os.PathLike, cfg) -> dict | None:
     """The results of the finished run in ``run_dir`` (``results.json``, a diverged run's too), or ``None`` if there
-    is none; refused (:func:`~torchrl_wbrm.training.guards.check_finished_config`) if it ran with other settings than
+    is none; refused (:func:`~torchrl_wbrm.training.resume.check_finished_config`) if it ran with other settings than
     ``cfg``, so that a study never reports a run of another config as this one's."""
-    from torchrl_wbrm.training.guards import check_finished_config
-    from torchrl_wbrm.training.trainer import config_as_dict
+    from torchrl_wbrm.training.config import config_as_dict
+    from torchrl_wbrm.training.resume import check_finished_config
 
     done = Path(run_dir) / "results.json"
     if not done.is_file():
@@ -95,7 +95,7 @@ def run_overrides(
     """
     import torch
 
-    from torchrl_wbrm.training.guards import write_json
+    from torchrl_wbrm.training.results import write_json
     from torchrl_wbrm.training.trainer import WBRMTrainer
 
     run_dir = Path(run_dir)
@@ -162,7 +162,7 @@ def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLik
 
 def _launch_cell(cell: dict, seeds: list[int], budget: list[str], out: Path, labels, launcher: str,
                  launcher_args: list[str]) -> None:
-    from torchrl_wbrm.training.guards import write_json
+    from torchrl_wbrm.training.results import write_json
 
     todo = [s for s in seeds if finished_results(cell_dir(out, cell, s, labels=labels),
                                                  compose_recipe_config(_overrides(cell, s, budget))) is None]

@@ -48,8 +48,9 @@ from torchrl_wbrm.evaluation.stats import mean_ci
 from torchrl_wbrm.objectives import basu_power_divergence, weighted_bellman_residual
 from torchrl_wbrm.objectives._utils import per_sample
 from torchrl_wbrm.objectives.functional import bellman_residual, effective_sample_size
-from torchrl_wbrm.training.config import WBRMConfig
-from torchrl_wbrm.training.guards import TrainingDiverged, json_safe, write_json
+from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, to_config
+from torchrl_wbrm.training.results import json_safe, write_json
+from torchrl_wbrm.training.stops import TrainingDiverged
 
 __all__ = ["SeedGroup", "VECTORISED_ALGOS", "aggregate", "not_vectorised", "run_seeds", "seed_config",
            "summarise_seeds"]
@@ -189,9 +190,9 @@ class SeedGroup:
     """
 
     def __init__(self, cfg, run_dir, *, progress: bool = True, loggers: dict | None = None):
-        from torchrl_wbrm.training.trainer import WBRMTrainer, _to_config
+        from torchrl_wbrm.training.trainer import WBRMTrainer
 
-        self.cfg: WBRMConfig = _to_config(cfg)
+        self.cfg: WBRMConfig = to_config(cfg)
         self.seeds = [int(s) for s in self.cfg.seeds]
         self.run_dir = Path(run_dir)
         self.progress = progress
@@ -589,8 +590,6 @@ def aggregate(runs: list[dict]) -> dict:
 
 
 def _combined(cfg: WBRMConfig, runs: list[dict], *, vectorised: bool, reason: str | None, timing: dict) -> dict:
-    from torchrl_wbrm.training.trainer import config_as_dict
-
     statuses = [r.get("status", "finished") for r in runs]
     return json_safe({
         "status": "finished" if all(s == "finished" for s in statuses) else "diverged",
@@ -617,9 +616,9 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
     """
     import sys
 
-    from torchrl_wbrm.training.trainer import WBRMTrainer, _to_config
+    from torchrl_wbrm.training.trainer import WBRMTrainer
 
-    cfg = _to_config(cfg)
+    cfg = to_config(cfg)
     if not cfg.seeds:
         raise ValueError("run_seeds needs cfg.seeds, a list of seeds.")
     run_dir = Path(run_dir)

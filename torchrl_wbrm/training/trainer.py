@@ -30,7 +30,6 @@ from typing import Callable
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
@@ -44,27 +43,20 @@ from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import q_value_bound
 from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
-from torchrl_wbrm.training.config import WBRMConfig, resolve_defaults, validate_config
+from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, to_config, validate_config
 from torchrl_wbrm.training.reporting import below_behaviour
 from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
 from torchrl_wbrm.objectives._utils import NonFiniteError
-from torchrl_wbrm.training.guards import (
-    RunDirClaim,
+from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
+from torchrl_wbrm.training.resume import changed_keys, check_run_request
+from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim
+from torchrl_wbrm.training.stops import (
     RunInterrupted,
     StopNow,
     StopSignals,
     TrainingDiverged,
-    atomic_write,
-    changed_keys,
-    check_run_dir,
-    check_run_request,
-    claim_run_dir,
     first_non_finite,
-    json_safe,
     non_finite_parameter,
-    pause_for_test,
-    take_claim,
-    write_json,
 )
 
 __all__ = ["WBRMTrainer", "default_run_dir", "set_seed", "get_rng_state", "set_rng_state"]
@@ -94,26 +86,6 @@ def set_rng_state(state: dict) -> None:
                        numpy_state["has_gauss"], numpy_state["cached_gaussian"])
     np.random.set_state(numpy_state)
     random.setstate(state["python"])
-
-
-def _to_config(cfg) -> WBRMConfig:
-    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict (merged on the schema, so unknown keys fail)."""
-    if isinstance(cfg, WBRMConfig):
-        cfg = OmegaConf.structured(cfg)
-    elif not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
-    # the settings left null take the env's values (resolve_defaults): the recipe and the Python API run one method
-    return resolve_defaults(OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)))
-
-
-def config_as_dict(cfg) -> dict:
-    """``cfg`` (a :class:`WBRMConfig` or a Hydra ``DictConfig`` of one) as the plain dict a run saves under
-    ``"config"`` in its checkpoint and ``results.json``. ``seeds`` appears only when set (a multi-seed run's), so a
-    one-seed run's config reads as those saved before the key existed."""
-    out = OmegaConf.to_container(OmegaConf.structured(_to_config(cfg)))
-    if out.get("seeds") is None:
-        out.pop("seeds", None)
-    return out
 
 
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
@@ -146,16 +118,16 @@ class WBRMTrainer:
         resume: continue from ``run_dir/checkpoint.pt``.
         progress: show tqdm bars.
 
-    A trainer claims ``run_dir`` (:func:`~torchrl_wbrm.training.guards.claim_run_dir`) before it looks into it and
+    A trainer claims ``run_dir`` (:func:`~torchrl_wbrm.training.rundir.claim_run_dir`) before it looks into it and
     holds the claim until :meth:`run` ends: a second trainer or recipe run on the same directory, in this process or
-    another, is refused (:class:`~torchrl_wbrm.training.guards.RunDirInUse`). A refused run or resume changes
+    another, is refused (:class:`~torchrl_wbrm.training.rundir.RunDirInUse`). A refused run or resume changes
     nothing on disk (a resume of a directory that does not exist creates none).
     """
 
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger=None, resume: bool = False,
                  progress: bool = True):
         self._claim: RunDirClaim | None = None
-        self.cfg: WBRMConfig = _to_config(cfg)
+        self.cfg: WBRMConfig = to_config(cfg)
         validate_config(self.cfg)
         if run_dir is None:
             if resume:

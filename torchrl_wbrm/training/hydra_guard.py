@@ -1,0 +1,117 @@
+"""The recipes' Hydra callback, :class:`RunDirGuard`: the config, the data, the run directory and a resume are checked
+(and the directory claimed) before Hydra writes its ``.hydra/`` record, so a refused command changes nothing on disk.
+"""
+from __future__ import annotations
+
+import traceback
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+from omegaconf import OmegaConf, open_dict, read_write
+from omegaconf.errors import OmegaConfBaseException
+
+from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.resume import check_run_request
+from torchrl_wbrm.training.rundir import (
+    RunDirClaim,
+    claim_run_dir,
+    clear_run_outputs,
+    hand_over,
+    holds_run,
+    remove_empty,
+    unique_dir,
+)
+
+__all__ = ["RunDirGuard"]
+
+
+class RunDirGuard(Callback):
+    """The recipes' Hydra callback (``hydra.callbacks.run_dir_guard``): a run request is checked before Hydra writes
+    anything, so a refused command leaves the disk as it was (no ``.hydra/`` record rewritten, no empty dated
+    directory under ``outputs/``).
+
+    In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
+
+    * the config is validated (:func:`~torchrl_wbrm.training.config.validate_config`);
+    * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.data.tasks.Task.check_data`: a Minari
+      pair, or a saved dataset), and held for the run's trainer, which does not read them again;
+    * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
+      a checkpoint whose config this one may continue, and ``X`` is claimed;
+    * a new run: the default dated directory is created with an exclusive ``mkdir`` (``_1``, ``_2``, ... when two
+      runs start in the same second), a given ``hydra.run.dir`` is claimed and must not hold a run unless
+      ``overwrite=true``, which then removes the earlier run's outputs and its Hydra record.
+
+    The claim is handed to the run's :class:`~torchrl_wbrm.training.WBRMTrainer` (:func:`take_claim`), which holds it
+    until the run ends. A refusal exits (``SystemExit``, status 1) with the reason in one line, and with the
+    traceback before it only under ``verbose=true``; Hydra would only warn about an exception raised by a callback.
+    """
+
+    def on_run_start(self, config, **kwargs) -> None:
+        try:
+            self.check(config)
+        except (ValueError, TypeError, KeyError, OSError, RuntimeError, OmegaConfBaseException) as err:
+            if _verbose(config):
+                traceback.print_exc()
+            reason = " ".join(str(err).split()) or type(err).__name__  # one line
+            raise SystemExit(f"Refused (nothing was written): {reason}") from err
+
+    @staticmethod
+    def check(config) -> RunDirClaim:
+        """The checks of :meth:`on_run_start` on a composed config (with its ``hydra`` node); returns the claim."""
+        cfg = _task_config(config)
+        validate_config(cfg)
+        get_task(cfg.env).check_data()  # bad data are refused here, before anything is written
+        raw_dir = OmegaConf.to_container(config.hydra.run, resolve=False)["dir"]
+        dated = isinstance(raw_dir, str) and "${now:" in raw_dir
+        if cfg.resume:
+            run_dir = Path(cfg.resume)
+            given = Path(str(config.hydra.run.dir))
+            if not dated and given.resolve() != run_dir.resolve():
+                raise ValueError(
+                    f"resume={cfg.resume} continues the run in {run_dir}, but hydra.run.dir={given} would put this "
+                    f"command's Hydra record elsewhere; drop hydra.run.dir (a resume runs in its own directory)."
+                )
+            claim, _ = check_run_request(cfg, run_dir, resume=True)
+        else:
+            run_dir = Path(str(config.hydra.run.dir))
+            if dated:  # a fresh directory of its own, even for two runs started in the same second
+                run_dir = unique_dir(run_dir)
+                claim = claim_run_dir(run_dir)
+            else:
+                created = not run_dir.exists()
+                run_dir.mkdir(parents=True, exist_ok=True)
+                try:
+                    claim, _ = check_run_request(cfg, run_dir, resume=False)
+                except BaseException:
+                    if created:
+                        remove_empty(run_dir)
+                    raise
+                if cfg.overwrite and holds_run(run_dir):  # the earlier run goes, record and logs too
+                    clear_run_outputs(run_dir, hydra_record=True)
+        _set_run_dir(config, run_dir)
+        hand_over(claim)
+        return claim
+
+
+def _task_config(config):
+    """The run's own config (without the ``hydra`` node) as a :class:`~torchrl_wbrm.training.config.WBRMConfig`."""
+    task = OmegaConf.masked_copy(config, [k for k in config.keys() if k != "hydra"])
+    return OmegaConf.to_object(OmegaConf.merge(_schema(), task))
+
+
+def _schema():
+    return OmegaConf.structured(WBRMConfig)
+
+
+def _set_run_dir(config, run_dir: Path) -> None:
+    with read_write(config.hydra), open_dict(config.hydra):
+        config.hydra.run.dir = str(run_dir)
+
+
+def _verbose(config) -> bool:
+    """The composed config's ``verbose`` setting (``False`` where it cannot be read)."""
+    try:
+        return OmegaConf.select(config, "verbose", default=False) is True
+    except Exception:  # noqa: BLE001 (a config too broken to read: no traceback)
+        return False

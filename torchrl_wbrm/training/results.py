@@ -1,0 +1,96 @@
+"""Writing a run's files: strict JSON, atomic replacement, and the kill tests' hook.
+
+* :func:`json_safe` — NaN and ±inf become ``null``, so ``results.json`` stays valid JSON.
+* :func:`atomic_write` — checkpoints and JSON files are written to a temporary file, fsynced and renamed over the
+  old one: a run killed at any point (SIGKILL included) leaves no half-written file.
+* :func:`pause_for_test` — the point where a kill test stops a run (unset outside tests: nothing happens).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+__all__ = ["TEST_PAUSE_ENV", "atomic_write", "json_safe", "pause_for_test", "write_json"]
+
+
+def json_safe(obj):
+    """``obj`` with NaN and ±inf replaced by ``None`` (valid JSON), tensors and numpy scalars as numbers."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, torch.Tensor) and obj.numel() == 1:
+        obj = obj.item()
+    if hasattr(obj, "item") and callable(obj.item) and not isinstance(obj, (str, bytes)):
+        try:
+            obj = obj.item()
+        except (TypeError, ValueError):
+            pass
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+#: The test hook's environment variable (:func:`pause_for_test`); outside tests it is unset and the hook does nothing.
+TEST_PAUSE_ENV = "TORCHRL_WBRM_TEST_PAUSE_AT"
+
+
+#: How many times this process has replaced each file name (:func:`atomic_write`), for the hook's ``<name>:<n>``.
+_REPLACED: dict[str, int] = {}
+
+
+def pause_for_test(point: str) -> None:
+    """Test hook for kill tests: when the environment variable :data:`TEST_PAUSE_ENV` equals ``point``, print
+    ``TORCHRL_WBRM_TEST_PAUSE_AT: paused at <point>`` on stderr and wait (for the test to kill the process).
+
+    Points: ``<stage>:<step>`` after a training step (``ratio:15``, ``q:25``), and ``<file name>:<n>`` inside the
+    n-th :func:`atomic_write` of that file in this process, after the new content is on disk in the temporary file and
+    before it replaces the file (``checkpoint.pt:4``, ``results.json:1``). Unset, the hook does nothing."""
+    if os.environ.get(TEST_PAUSE_ENV) != point:
+        return
+    print(f"{TEST_PAUSE_ENV}: paused at {point}", file=sys.stderr, flush=True)
+    while True:
+        time.sleep(60)
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (where the platform lets a directory be opened and synced)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
+    """Replace ``path`` with what ``write(file)`` writes, atomically: the content goes to ``tmp`` (default
+    ``<path>.tmp``, in the same directory), is flushed and fsynced, then renamed over ``path`` (``os.replace``) and
+    the directory synced. A process killed at any point leaves either the old ``path`` or the new one complete, never
+    a half-written one (at most a stale temporary file, which the next write replaces)."""
+    path = Path(path)
+    tmp = Path(tmp) if tmp is not None else path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    _REPLACED[path.name] = _REPLACED.get(path.name, 0) + 1
+    pause_for_test(f"{path.name}:{_REPLACED[path.name]}")
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def write_json(path: Path, obj) -> None:
+    """Write ``obj`` as strict JSON (``allow_nan=False`` after :func:`json_safe`), atomically (:func:`atomic_write`)."""
+    text = json.dumps(json_safe(obj), indent=2, default=float, allow_nan=False)
+    atomic_write(path, lambda f: f.write(text.encode()))

@@ -1,0 +1,166 @@
+"""Run directories: one run at a time per directory, and no run replaced unless asked.
+
+* :func:`claim_run_dir` — an exclusive advisory lock on the directory itself, held for the run (nothing is written
+  for it; the kernel drops it when the process ends).
+* :func:`check_run_dir` — a new run refuses a directory holding a checkpoint or results unless ``overwrite=true``,
+  which removes every output of the earlier run (:func:`clear_run_outputs`).
+"""
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+from pathlib import Path
+
+try:  # advisory locks (POSIX); without them a run directory is not locked
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
+from torchrl_wbrm.keys import CHECKPOINT
+
+__all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "RunDirClaim", "RunDirInUse", "check_run_dir", "claim_run_dir",
+           "clear_run_outputs", "hand_over", "holds_run", "remove_empty", "take_claim", "unique_dir"]
+
+
+#: Files that mark a directory as holding a run.
+RUN_FILES = (CHECKPOINT, "results.json")
+
+
+#: What a run writes into its directory (besides Hydra's record): removed by ``overwrite=true`` so that no output of
+#: the earlier run (its CSV logs above all, which torchrl's ``CSVLogger`` would append to) outlives it.
+RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", "results.json", "results.json.tmp", "history.json", "history.json.tmp",
+               "training_curve.png", "evaluation.png", "logs", "wandb")
+
+
+#: Hydra's record of the command that made the run (``.hydra/``) and its job log (``<job name>.log``).
+HYDRA_RECORD = (".hydra",)
+
+
+def holds_run(run_dir: Path) -> list[str]:
+    """The files of :data:`RUN_FILES` (and ``history.json``) in ``run_dir``, if any of :data:`RUN_FILES` is there."""
+    present = [name for name in (*RUN_FILES, "history.json") if (Path(run_dir) / name).exists()]
+    return present if any(name in RUN_FILES for name in present) else []
+
+
+def clear_run_outputs(run_dir: Path, *, hydra_record: bool = False) -> list[str]:
+    """Remove the earlier run's outputs from ``run_dir`` (:data:`RUN_OUTPUTS`; with ``hydra_record`` also its
+    ``.hydra/`` record and Hydra job logs ``*.log``); other files are left alone. Returns what was removed."""
+    run_dir = Path(run_dir)
+    names = list(RUN_OUTPUTS)
+    if hydra_record:
+        names += [*HYDRA_RECORD, *(p.name for p in run_dir.glob("*.log") if p.is_file())]
+    removed = []
+    for name in names:
+        path = run_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        else:
+            continue
+        removed.append(name)
+    return removed
+
+
+def check_run_dir(run_dir: Path, *, overwrite: bool, remove: bool = True) -> None:
+    """Refuse a new run into a directory that already holds a run, unless ``overwrite`` (then, with ``remove``,
+    every output of the earlier run is removed: :func:`clear_run_outputs`)."""
+    present = holds_run(run_dir)
+    if not present:
+        return
+    if not overwrite:
+        raise FileExistsError(
+            f"{run_dir} already holds a run ({', '.join(present)}). Continue it with resume={run_dir}, choose another "
+            f"directory, or pass overwrite=true to replace it."
+        )
+    if remove:
+        clear_run_outputs(run_dir)
+
+
+class RunDirInUse(RuntimeError):
+    """Another run holds the run directory (:func:`claim_run_dir`)."""
+
+
+class RunDirClaim:
+    """An exclusive claim on a run directory: ``fcntl.flock`` on the directory's own file descriptor.
+
+    Nothing is written for it, and the kernel drops it when the process ends, so a killed run leaves no stale lock.
+    Released by :meth:`release` (or when this object is collected).
+    """
+
+    def __init__(self, path: Path, fd: int | None) -> None:
+        self.path, self._fd = Path(path), fd
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def release(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None and fd >= 0:
+            os.close(fd)  # closing the descriptor drops its lock
+
+    def __del__(self) -> None:
+        self.release()
+
+    def __repr__(self) -> str:
+        return f"RunDirClaim({str(self.path)!r}, held={self.held})"
+
+
+def claim_run_dir(run_dir: str | os.PathLike) -> RunDirClaim:
+    """Claim the existing directory ``run_dir`` for one run, or raise :class:`RunDirInUse` if another run (in this
+    process or another) holds it. Two runs can then never write one directory: the claim is taken before the
+    directory is checked for an earlier run and held until the run ends."""
+    path = Path(run_dir)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    if fcntl is None:  # pragma: no cover - no advisory locks on this platform
+        os.close(fd)
+        return RunDirClaim(path, -1)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        os.close(fd)
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise RunDirInUse(
+                f"{path} is in use by another run (it holds the directory's lock until it ends). Wait for that run "
+                f"to end, or choose another directory (hydra.run.dir=...)."
+            ) from err
+        return RunDirClaim(path, -1)  # a file system without flock: unlocked, as before
+    return RunDirClaim(path, fd)
+
+
+#: Claims taken before a run's trainer exists (by :class:`RunDirGuard`), handed to it by :func:`take_claim`.
+_HANDED_OVER: dict[str, RunDirClaim] = {}
+
+
+def hand_over(claim: RunDirClaim) -> None:
+    """Keep ``claim`` for the trainer of the same run directory in this process (:func:`take_claim`)."""
+    _HANDED_OVER[os.path.realpath(claim.path)] = claim
+
+
+def take_claim(run_dir: str | os.PathLike) -> RunDirClaim | None:
+    """The claim :func:`hand_over` kept for ``run_dir`` (once), or ``None``."""
+    claim = _HANDED_OVER.pop(os.path.realpath(run_dir), None)
+    return claim if claim is not None and claim.held else None
+
+
+def unique_dir(path: Path) -> Path:
+    """Create ``path`` (or ``path_1``, ``path_2``, ... if it exists) with one exclusive ``mkdir`` each: two runs that
+    start in the same second get directories of their own."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for i in range(1000):
+        candidate = path if i == 0 else path.with_name(f"{path.name}_{i}")
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"Could not create a fresh run directory next to {path} (1,000 of them exist).")
+
+
+def remove_empty(path: Path) -> None:
+    try:
+        path.rmdir()
+    except OSError:
+        pass

@@ -1,0 +1,144 @@
+"""What stops a run: a non-finite figure or parameter (:class:`TrainingDiverged`), and SIGINT or SIGTERM
+(:class:`StopSignals`), which end the run at the next step boundary, after a checkpoint (:class:`RunInterrupted`).
+"""
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from pathlib import Path
+
+import torch
+
+from torchrl_wbrm.keys import CHECKPOINT
+
+__all__ = ["RESUME_COMMAND", "RunInterrupted", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
+           "non_finite_parameter"]
+
+
+class TrainingDiverged(RuntimeError):
+    """A non-finite figure or parameter stopped the run; ``stage``, ``step``, ``figure`` and ``value`` say where."""
+
+    def __init__(self, stage: str, step: int, figure: str, value: float, checkpoint_step: int | None = None):
+        self.stage, self.step, self.figure, self.value = stage, step, figure, value
+        self.checkpoint_step = checkpoint_step
+        super().__init__(
+            f"Training diverged in stage {stage!r} at step {step}: {figure} = {value}. The run stopped; the last "
+            f"checkpoint with finite values is kept."
+        )
+
+
+#: the command the resume hint of :class:`RunInterrupted` starts with (the entry point sets how it was started)
+RESUME_COMMAND = "python recipes/wbrm_offline.py"
+
+
+class RunInterrupted(Exception):
+    """SIGINT or SIGTERM stopped the run after a checkpoint; ``signal_name``, ``stage``, ``step``, ``run_dir``."""
+
+    def __init__(self, signum: int, stage: str, step: int, run_dir: Path, *, during: str | None = None):
+        self.signum, self.stage, self.step, self.run_dir = signum, stage, step, Path(run_dir)
+        self.signal_name = signal.Signals(signum).name
+        self.during = during
+        where = f"during the {during} " if during else ""
+        super().__init__(
+            f"{self.signal_name} received: stopped {where}in stage {stage!r} at step {step}, checkpoint written to "
+            f"{self.run_dir / CHECKPOINT}. Resume with: {RESUME_COMMAND} resume={self.run_dir}"
+        )
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+class StopNow(Exception):
+    """A signal interrupted a :meth:`StopSignals.immediately` block; ``signum`` is the signal."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"{signal.Signals(signum).name} received")
+
+
+class StopSignals:
+    """A context manager that turns SIGINT/SIGTERM into a flag (``.received``: the signal number or ``None``).
+
+    The trainer polls it at step boundaries, writes a checkpoint and raises :class:`RunInterrupted`. A second signal
+    while the flag is set falls back to the previous handler (so a stuck run can still be killed). Off the main
+    thread (where Python cannot install handlers) it does nothing.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict = {}
+        self._immediate = False
+
+    def _handle(self, signum, frame) -> None:
+        if self.received is not None:  # a second signal: the previous behaviour (KeyboardInterrupt, or exit)
+            previous = self._previous.get(signum)
+            if callable(previous):
+                previous(signum, frame)
+            else:
+                raise KeyboardInterrupt
+            return
+        self.received = signum
+        if self._immediate:  # inside immediately(): stop now, not at the next step boundary
+            self._immediate = False
+            raise StopNow(signum)
+
+    @contextlib.contextmanager
+    def immediately(self):
+        """A block a signal interrupts at once (:class:`StopNow`), for work that can be abandoned and redone, such as
+        an evaluation (it changes no training state): a long evaluation stops promptly instead of looking hung. A
+        signal received before the block raises at its start."""
+        if self.received is not None:
+            raise StopNow(self.received)
+        self._immediate = True
+        try:
+            yield
+        finally:
+            self._immediate = False
+
+    def __enter__(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.getsignal(sig)
+                signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous if previous is not None else signal.SIG_DFL)
+        self._previous = {}
+
+
+def first_non_finite(figures: dict) -> tuple[str, float] | None:
+    """The first ``(name, value)`` among scalar tensors/floats of ``figures`` that is NaN or ±inf (one host sync)."""
+    names, values = [], []
+    for name, value in figures.items():
+        if isinstance(value, torch.Tensor):
+            if value.numel() == 1:
+                names.append(name)
+                values.append(value.detach().reshape(()).to(torch.float64, copy=False))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            names.append(name)
+            values.append(torch.tensor(float(value), dtype=torch.float64))
+    if not values:
+        return None
+    stacked = torch.stack([v.cpu() for v in values])
+    finite = torch.isfinite(stacked)
+    if bool(finite.all()):
+        return None
+    i = int((~finite).nonzero()[0])
+    return names[i], float(stacked[i])
+
+
+def non_finite_parameter(*modules) -> str | None:
+    """The name of the first parameter or buffer with a non-finite entry in ``modules``, or ``None``."""
+    for module in modules:
+        if module is None:
+            continue
+        for name, tensor in (*module.named_parameters(), *module.named_buffers()):
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                return name
+    return None

@@ -1,0 +1,90 @@
+"""The checks of a run's settings that a type cannot make, all before any data are collected: finite numbers, seeds,
+sizes, threads, the device, the logger and what the env's task supports (:func:`validate_run_settings`, called by
+:func:`~torchrl_wbrm.training.config.validate_config`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import fields, is_dataclass
+
+import torch
+
+from torchrl_wbrm.data.tasks import get_task
+
+__all__ = ["check_device", "check_logger", "validate_run_settings"]
+
+
+def _leaves(node, prefix: str = ""):
+    if is_dataclass(node):
+        for f in fields(node):
+            yield from _leaves(getattr(node, f.name), f"{prefix}{f.name}.")
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            yield from _leaves(v, f"{prefix[:-1]}[{i}].")
+    else:
+        yield prefix[:-1], node
+
+
+def check_device(device: str, key: str = "device") -> None:
+    """Refuse a device string torch cannot parse or whose backend is not available here, naming ``key``."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"{key}={device!r} is not a torch device ({err}); use e.g. cpu or cuda.") from err
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{key}={device!r} but CUDA is not available on this machine (torch.cuda.is_available() "
+                             f"is False); use {key}=cpu.")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{key}={device!r} but this machine has {torch.cuda.device_count()} CUDA device(s).")
+    elif dev.type == "mps":
+        if not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            raise ValueError(f"{key}={device!r} but MPS is not available on this machine; use {key}=cpu.")
+    elif dev.type != "cpu":
+        raise ValueError(f"{key}={device!r}: only cpu, cuda and mps devices are supported.")
+
+
+def check_logger(logger_cfg, key: str = "logger") -> None:
+    """Refuse, before any data are collected, a wandb setting wandb itself would refuse when the run starts: the
+    project name (checked by ``wandb.Settings``, so the rule is wandb's own: no ``/ \\ # ? % :``, at most 128
+    characters) and the group."""
+    if getattr(logger_cfg, "backend", None) != "wandb":
+        return
+    try:
+        import wandb
+    except ImportError as err:
+        raise ValueError(f"{key}.backend='wandb' needs the wandb package (pip install wandb), which is not "
+                         f"installed.") from err
+    for name in ("project", "group"):
+        value = getattr(logger_cfg, name, None)
+        if value is None:
+            continue
+        try:
+            wandb.Settings(**{"run_group" if name == "group" else name: str(value)})
+        except Exception as err:  # noqa: BLE001 (wandb's UsageError or pydantic's ValidationError)
+            raise ValueError(f"{key}.{name}={value!r} is refused by wandb: {err}") from err
+
+
+def validate_run_settings(cfg) -> None:
+    """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
+    data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports."""
+    for key, value in _leaves(cfg):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{key}={value!r}: every number in the config must be finite.")
+    if not cfg.seed >= 0:
+        raise ValueError(f"seed must be >= 0, got {cfg.seed!r}.")
+    if not cfg.eval.seed >= 0:
+        raise ValueError(f"eval.seed must be >= 0, got {cfg.eval.seed!r}.")
+    if not cfg.eval.q_samples > 0:
+        raise ValueError(f"eval.q_samples must be > 0 (the samples of the Q* and ratio errors), got {cfg.eval.q_samples!r}.")
+    if cfg.threads is not None and not cfg.threads >= 1:
+        raise ValueError(f"threads must be >= 1 or null (torch's default), got {cfg.threads!r}.")
+    if not cfg.checkpoint_every >= 0:
+        raise ValueError(f"checkpoint_every must be >= 0 (0: only at the end of each stage), got {cfg.checkpoint_every!r}.")
+    if not cfg.ratio.patience >= 1:
+        raise ValueError(f"ratio.patience must be >= 1, got {cfg.ratio.patience!r}.")
+    if cfg.q.maximiser == "sampled" and not cfg.q.num_action_samples >= 1:
+        raise ValueError(f"q.num_action_samples must be >= 1, got {cfg.q.num_action_samples!r}.")
+    check_device(cfg.device)
+    check_logger(cfg.logger)
+    get_task(cfg.env).validate()  # the env's data settings, and what its ground truth supports
