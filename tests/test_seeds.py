@@ -14,7 +14,7 @@ from tests.references import tiny_lqr_config
 from torchrl_wbrm.evaluation.stats import mean_ci
 from torchrl_wbrm.training.config import validate_config
 from torchrl_wbrm.training.reporting import load_results
-from torchrl_wbrm.training.seeds import _clip_per_seed, not_vectorised, run_seeds
+from torchrl_wbrm.training.seeds import _clip_per_seed, not_vectorised, run_seeds, summarise_seeds
 from torchrl_wbrm.training.trainer import WBRMTrainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,3 +106,28 @@ def test_per_seed_gradient_clip_is_torchs_on_each_seed():
         torch.nn.utils.clip_grad_norm_(alone, 2.0)
         for p, a in zip(params, alone):
             torch.testing.assert_close(p.grad[i], a.grad)
+
+
+def test_a_diverging_seed_is_recorded_and_the_others_finish(tmp_path, monkeypatch):
+    """Seed 1's Q parameters turned NaN in the stacked update: seed 1 is recorded as diverged (its own results.json
+    says where), seed 0 finishes, and the aggregate is over the finished seed alone."""
+    from torchrl_wbrm.training import seeds as seeds_module
+
+    build = seeds_module._QUpdate.__init__
+
+    def poisoned(self, group):
+        build(self, group)
+        with torch.no_grad():
+            for value in self.params["value_network_params"].values(True, True):
+                value[1].fill_(float("nan"))
+
+    monkeypatch.setattr(seeds_module._QUpdate, "__init__", poisoned)
+    results = run_seeds(tiny_lqr_config(seeds=[0, 1]), tmp_path, progress=False)
+    assert results["status"] == "diverged" and results["seeds_diverged"] == [1]
+    finished, diverged = results["runs"]
+    assert finished["status"] == "finished" and diverged["status"] == "diverged"
+    assert diverged["diverged"]["stage"] == "q" and diverged["diverged"]["step"] == 1
+    assert json.loads((tmp_path / "seed1" / "results.json").read_text())["status"] == "diverged"
+    assert results["aggregate"]["final"]["regret"]["n"] == 1
+    assert results["aggregate"]["final"]["regret"]["mean"] == pytest.approx(finished["final"]["regret"])
+    assert "seed 1: regret n/a  (diverged)" in summarise_seeds(results)
