@@ -342,7 +342,7 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
     and every observation, action and reward is finite and every action lies in the action space; the behaviour
     dataset holds enough episodes to split. A refusal is a one-line ``ValueError`` (``FileNotFoundError`` for a
     dataset not on disk) naming the dataset and, for a bad value, the episode, the first offending step and the key.
-Without ``eval_env``, the env recorded in the datasets must be gymnasium's registered one (:func:`trusted_env_spec`).
+    Without ``eval_env``, the env recorded in the datasets must be the registered one (:func:`trusted_env_spec`).
 
     ``keep=True`` holds the data read for the next :func:`make_minari_datasets` on the same, unchanged files (once):
     a run checks its data before it writes anything, and its trainer then reads them once only.
