@@ -364,3 +364,33 @@ def test_the_examples_command_is_quiet(tmp_path):
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr[-2000:]
     assert proc.stdout.splitlines() == [f"expert:    {tmp_path}/examples/cartpole/expert-v0",
                                         f"behaviour: {tmp_path}/examples/cartpole/behaviour-v0"]
+
+
+# ---------------------------------------------------------------------- one preparation of the config per run
+def test_one_recipe_run_prepares_its_config_once(tmp_path, monkeypatch):
+    """The recipe merges, resolves and validates its config once and builds its env's task once (counted): the Hydra
+    callback prepares them (``prepare_config``) and hands them to the run and its trainer."""
+    from collections import Counter
+
+    from torchrl_wbrm import cli
+    from torchrl_wbrm.data.tasks.base import Task
+    from torchrl_wbrm.training import config as config_module
+
+    counts = Counter()
+    init, choices = Task.__init__, config_module._choices
+
+    def counting_init(self, env):
+        counts["tasks built"] += 1
+        init(self, env)
+
+    def counting_choices():  # read once per validate_config
+        counts["validations"] += 1
+        return choices()
+
+    monkeypatch.setattr(Task, "__init__", counting_init)
+    monkeypatch.setattr(config_module, "_choices", counting_choices)
+    monkeypatch.setattr(sys, "argv", ["wbrm-offline", *TINY, "logger=none", "plots=false", "threads=1",
+                                      f"hydra.run.dir={tmp_path / 'run'}"])
+    cli.wbrm_offline()
+    assert json.loads((tmp_path / "run" / "results.json").read_text())["status"] == "finished"
+    assert counts == {"tasks built": 1, "validations": 1}

@@ -20,11 +20,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.data.tasks import get_task
-from torchrl_wbrm.training import WBRMTrainer, register_configs, validate_config
+from torchrl_wbrm.training import WBRMTrainer, register_configs
 from torchrl_wbrm.training.results import write_json
 from torchrl_wbrm.training.resume import check_run_record
 from torchrl_wbrm.training import stops
 from torchrl_wbrm.training.stops import RunInterrupted
+from torchrl_wbrm.training.config import prepare_config
+from torchrl_wbrm.training.hydra_guard import take_prepared
 from torchrl_wbrm.training.logging import make_logger
 from torchrl_wbrm.training.reporting import summarise
 
@@ -94,12 +96,14 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     directory.
     """
     start = time.perf_counter()
-    validate_config(OmegaConf.to_object(cfg))  # every value, before any data are collected
     run_dir = Path(cfg.resume) if cfg.resume else Path(HydraConfig.get().runtime.output_dir)
+    # the config merged, resolved and validated once, with its env's task: by the Hydra callback (RunDirGuard), or
+    # here, before any data are collected, when the app runs without it
+    prepared = take_prepared(run_dir) or prepare_config(cfg)
     if cfg.seeds:
         return _run_seeds(cfg, run_dir)
     try:
-        trainer = WBRMTrainer(cfg, run_dir, logger=None, resume=bool(cfg.resume))
+        trainer = WBRMTrainer(prepared, run_dir, logger=None, resume=bool(cfg.resume))
         trainer.logger = make_logger(
             cfg.logger, run_dir, f"wbrm_{cfg.env.name}_seed{cfg.seed}", OmegaConf.to_container(cfg, resolve=True)
         )

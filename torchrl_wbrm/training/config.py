@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, make_dataclass
-from typing import List, Optional
+from typing import List, NamedTuple, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_wbrm.algos import ALGOS, store_algo_configs
 from torchrl_wbrm.data import EnvConfig
-from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.data.tasks import Task, get_task
 from torchrl_wbrm.training.validation import validate_run_settings
 
 __all__ = [
@@ -23,11 +23,13 @@ __all__ = [
     "EvalConfig",
     "LoggerConfig",
     "MakeDatasetConfig",
+    "PreparedConfig",
     "QConfig",
     "RatioConfig",
     "WBRMConfig",
     "config_as_dict",
     "env_config",
+    "prepare_config",
     "register_configs",
     "resolve_defaults",
     "to_config",
@@ -361,13 +363,14 @@ def _choices() -> dict[str, tuple]:
     return {"algo": tuple(ALGOS), **_CHOICES}
 
 
-def resolve_defaults(cfg):
+def resolve_defaults(cfg, task: Task | None = None):
     """``cfg`` with every setting it leaves null (``None``) set from the env's task
     (:meth:`~torchrl_wbrm.data.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
     activation, the step budget and the evaluation sizes. A copy; settings already given are kept as they are.
 
     The trainer resolves the config it is given this way, so ``WBRMTrainer(WBRMConfig(env=...))`` runs the same
-    method as ``python recipes/wbrm_offline.py env=...``.
+    method as ``python recipes/wbrm_offline.py env=...``. ``task``: the env's task, when built already (else built
+    here).
     """
     import copy
 
@@ -380,7 +383,7 @@ def resolve_defaults(cfg):
         cfg.q.expert_bc_alpha = 0.0
     if cfg.q.expert_bc_alpha and cfg.q.bc_alpha is None:
         cfg.q.bc_alpha = 0.0
-    for key, value in get_task(cfg.env).training_defaults().items():
+    for key, value in (task if task is not None else get_task(cfg.env)).training_defaults().items():
         section, name = key.split(".")
         node = getattr(cfg, section)
         if getattr(node, name) is None:
@@ -388,31 +391,57 @@ def resolve_defaults(cfg):
     return cfg
 
 
-def to_config(cfg) -> WBRMConfig:
-    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict (merged on the schema, so unknown keys fail), its null
-    settings resolved (:func:`resolve_defaults`): the recipe and the Python API run one method."""
+def merge_config(cfg) -> WBRMConfig:
+    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict, merged on the schema (so unknown keys fail)."""
     if isinstance(cfg, WBRMConfig):
         cfg = OmegaConf.structured(cfg)
     elif not isinstance(cfg, DictConfig):
         cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
-    return resolve_defaults(OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)))
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
 
 
-def config_as_dict(cfg) -> dict:
+def to_config(cfg, task: Task | None = None) -> WBRMConfig:
+    """:func:`merge_config`, its null settings resolved (:func:`resolve_defaults`): the recipe and the Python API run
+    one method. ``task``: the env's task, when built already."""
+    return resolve_defaults(merge_config(cfg), task)
+
+
+class PreparedConfig(NamedTuple):
+    """A run's config merged on the schema, resolved and validated (:func:`prepare_config`), and its env's task (no
+    data attached yet): what a run builds once and hands on."""
+
+    config: WBRMConfig
+    task: Task
+
+
+def prepare_config(cfg) -> PreparedConfig:
+    """The one preparation of a run's config: merged on the schema (:func:`merge_config`), its env's task built,
+    resolved with the task's defaults (:func:`resolve_defaults`) and validated (:func:`validate_config`)."""
+    merged = merge_config(cfg)
+    task = get_task(merged.env)
+    config = resolve_defaults(merged, task)
+    validate_config(config, task)
+    return PreparedConfig(config, task)
+
+
+def config_as_dict(cfg, task: Task | None = None) -> dict:
     """``cfg`` (a :class:`WBRMConfig` or a Hydra ``DictConfig`` of one) as the plain dict a run saves under
     ``"config"`` in its checkpoint and ``results.json``. ``seeds`` appears only when set (a multi-seed run's), so a
-    one-seed run's config reads as those saved before the key existed."""
-    out = OmegaConf.to_container(OmegaConf.structured(to_config(cfg)))
+    one-seed run's config reads as those saved before the key existed. ``task``: the env's task, when built
+    already."""
+    out = OmegaConf.to_container(OmegaConf.structured(to_config(cfg, task)))
     if out.get("seeds") is None:
         out.pop("seeds", None)
     return out
 
 
-def validate_config(cfg) -> None:
+def validate_config(cfg, task: Task | None = None) -> None:
     """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting.
 
-    Settings left null are checked as :func:`resolve_defaults` fills them."""
-    cfg = resolve_defaults(cfg)
+    Settings left null are checked as :func:`resolve_defaults` fills them. ``task``: the env's task, when built
+    already (else built here)."""
+    task = task if task is not None else get_task(cfg.env)
+    cfg = resolve_defaults(cfg, task)
     for key, allowed in _choices().items():
         value = _get(cfg, key)
         if value not in allowed:
@@ -466,7 +495,7 @@ def validate_config(cfg) -> None:
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)
         if spec.validate is not None and hasattr(cfg.baselines, spec.name):
             spec.validate(getattr(cfg.baselines, spec.name), f"baselines.{spec.name}")
-    if cfg.ratio.source == "exact" and not get_task(cfg.env).has_exact_ratio:
+    if cfg.ratio.source == "exact" and not task.has_exact_ratio:
         raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
     if cfg.seeds is not None:
         seeds = list(cfg.seeds)
@@ -475,7 +504,7 @@ def validate_config(cfg) -> None:
         if cfg.resume:
             raise ValueError(f"seeds={seeds} cannot be resumed (resume={cfg.resume!r}): a multi-seed run writes no "
                              "checkpoint; run it again, or resume one seed's run started with seed=<s>.")
-    validate_run_settings(cfg)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
+    validate_run_settings(cfg, task)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
 
 
 def register_configs() -> None:

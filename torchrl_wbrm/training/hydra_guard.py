@@ -10,8 +10,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_wbrm.data.tasks import get_task
-from torchrl_wbrm.training.config import WBRMConfig, validate_config
+from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, prepare_config
 from torchrl_wbrm.training.resume import check_run_request
 from torchrl_wbrm.training.rundir import (
     RunDirClaim,
@@ -23,7 +22,10 @@ from torchrl_wbrm.training.rundir import (
     unique_dir,
 )
 
-__all__ = ["RunDirGuard"]
+__all__ = ["RunDirGuard", "take_prepared"]
+
+#: Each checked run's prepared config, by run directory, until the run takes it (:func:`take_prepared`).
+_PREPARED: dict[Path, PreparedConfig] = {}
 
 
 class RunDirGuard(Callback):
@@ -33,7 +35,8 @@ class RunDirGuard(Callback):
 
     In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
 
-    * the config is validated (:func:`~torchrl_wbrm.training.config.validate_config`);
+    * the config is merged, resolved and validated, and its env's task built, once
+      (:func:`~torchrl_wbrm.training.config.prepare_config`); the run takes both (:func:`take_prepared`);
     * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.data.tasks.Task.check_data`: a Minari
       pair, or a saved dataset), and held for the run's trainer, which does not read them again;
     * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
@@ -59,9 +62,9 @@ class RunDirGuard(Callback):
     @staticmethod
     def check(config) -> RunDirClaim:
         """The checks of :meth:`on_run_start` on a composed config (with its ``hydra`` node); returns the claim."""
-        cfg = _task_config(config)
-        validate_config(cfg)
-        get_task(cfg.env).check_data()  # bad data are refused here, before anything is written
+        prepared = prepare_config(_task_config(config))
+        cfg, task = prepared
+        task.check_data()  # bad data are refused here, before anything is written
         raw_dir = OmegaConf.to_container(config.hydra.run, resolve=False)["dir"]
         dated = isinstance(raw_dir, str) and "${now:" in raw_dir
         if cfg.resume:
@@ -72,7 +75,7 @@ class RunDirGuard(Callback):
                     f"resume={cfg.resume} continues the run in {run_dir}, but hydra.run.dir={given} would put this "
                     f"command's Hydra record elsewhere; drop hydra.run.dir (a resume runs in its own directory)."
                 )
-            claim, _ = check_run_request(cfg, run_dir, resume=True)
+            claim, _ = check_run_request(cfg, run_dir, resume=True, task=task)
         else:
             run_dir = Path(str(config.hydra.run.dir))
             if dated:  # a fresh directory of its own, even for two runs started in the same second
@@ -82,7 +85,7 @@ class RunDirGuard(Callback):
                 created = not run_dir.exists()
                 run_dir.mkdir(parents=True, exist_ok=True)
                 try:
-                    claim, _ = check_run_request(cfg, run_dir, resume=False)
+                    claim, _ = check_run_request(cfg, run_dir, resume=False, task=task)
                 except BaseException:
                     if created:
                         remove_empty(run_dir)
@@ -91,7 +94,14 @@ class RunDirGuard(Callback):
                     clear_run_outputs(run_dir, hydra_record=True)
         _set_run_dir(config, run_dir)
         hand_over(claim)
+        _PREPARED[run_dir.resolve()] = prepared
         return claim
+
+
+def take_prepared(run_dir) -> PreparedConfig | None:
+    """The config and task :class:`RunDirGuard` prepared for the run in ``run_dir`` (once: ``None`` afterwards, and
+    for a run the guard did not check)."""
+    return _PREPARED.pop(Path(run_dir).resolve(), None)
 
 
 def _task_config(config):

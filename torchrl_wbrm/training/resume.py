@@ -125,8 +125,8 @@ def check_resume_config(path: Path, saved: dict, now: dict, state: dict) -> dict
     return changes
 
 
-def check_run_request(cfg, run_dir: Path, *, resume: bool,
-                      claim: RunDirClaim | None = None) -> tuple[RunDirClaim, dict | None]:
+def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | None = None,
+                      task=None) -> tuple[RunDirClaim, dict | None]:
     """Everything that can refuse a run in ``run_dir`` before it starts, with nothing written: the directory is
     claimed (:func:`claim_run_dir`, unless ``claim`` is this run's already), then a resume's checkpoint is read and
     its config compared (:func:`check_resume_config`), or a new run's directory checked for an earlier run
@@ -141,7 +141,7 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool,
     try:
         if resume:
             sd = read_checkpoint(path)
-            check_resume_config(path, dict(sd["config"]), config_as_dict(cfg), sd["state"])
+            check_resume_config(path, dict(sd["config"]), config_as_dict(cfg, task), sd["state"])
         else:
             check_run_dir(run_dir, overwrite=cfg.overwrite, remove=False)
     except BaseException:

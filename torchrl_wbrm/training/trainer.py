@@ -43,7 +43,7 @@ from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import q_value_bound
 from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
-from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, to_config, validate_config
+from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour
 from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
 from torchrl_wbrm.objectives._utils import NonFiniteError
@@ -108,7 +108,9 @@ class WBRMTrainer:
     """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
 
     Args:
-        cfg: a :class:`WBRMConfig` (or a Hydra ``DictConfig`` of one).
+        cfg: a :class:`WBRMConfig` (or a Hydra ``DictConfig`` of one), or a
+            :class:`~torchrl_wbrm.training.config.PreparedConfig` (the config already merged, resolved and validated,
+            with its env's task).
         run_dir: where checkpoints, ``results.json`` and plots go. ``None`` (the default): a new dated directory
             under the working directory, as the recipe's: ``outputs/wbrm_offline/<env.name>/<date>_seed<seed>``
             (:func:`default_run_dir`). A resume needs the directory it continues.
@@ -127,8 +129,11 @@ class WBRMTrainer:
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger=None, resume: bool = False,
                  progress: bool = True):
         self._claim: RunDirClaim | None = None
-        self.cfg: WBRMConfig = to_config(cfg)
-        validate_config(self.cfg)
+        # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
+        # one run's data, so a prepared task already used by another trainer is built anew
+        prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)
+        self.cfg: WBRMConfig = prepared.config
+        self.task: Task = prepared.task if prepared.task.datasets is None else get_task(self.cfg.env)
         if run_dir is None:
             if resume:
                 raise ValueError("resume=True needs the run directory to continue (run_dir=...).")
@@ -141,7 +146,7 @@ class WBRMTrainer:
         if not resume:
             self.run_dir.mkdir(parents=True, exist_ok=True)
         self._claim, self._resume_sd = check_run_request(self.cfg, self.run_dir, resume=resume,
-                                                         claim=take_claim(self.run_dir))
+                                                         claim=take_claim(self.run_dir), task=self.task)
         try:
             self._init(resume, logger, progress)
         except BaseException:
@@ -160,7 +165,7 @@ class WBRMTrainer:
 
     def _init(self, resume: bool, logger, progress: bool) -> None:
         if resume:
-            self.resume_changes = changed_keys(dict(self._resume_sd["config"]), config_as_dict(self.cfg))
+            self.resume_changes = changed_keys(dict(self._resume_sd["config"]), config_as_dict(self.cfg, self.task))
         else:
             check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)  # overwrite=true: the earlier run's outputs go
         self._stop = None  # StopSignals while run() runs
@@ -184,7 +189,7 @@ class WBRMTrainer:
     # ------------------------------------------------------------------ setup
     def _setup_data(self) -> None:
         t0 = time.perf_counter()
-        self.task: Task = get_task(self.cfg.env)  # everything env-specific: data, action box, γ, evaluator, truth
+        # self.task: everything env-specific (data, action box, γ, evaluator, truth)
         if self.cfg.data_cache:
             self.datasets: OfflineDatasets = cached_offline_datasets(self.cfg.env, seed=self.cfg.seed, cache_dir=self.cfg.data_cache)
         else:
@@ -577,7 +582,7 @@ class WBRMTrainer:
             "final": final[-1] if final else {},
             "flags": ["diverged"],
             "data_seconds": self.data_seconds,
-            "config": config_as_dict(self.cfg),
+            "config": config_as_dict(self.cfg, self.task),
         }
         write_json(self.run_dir / "results.json", results)
         write_json(self.run_dir / "history.json", self.history)
@@ -602,7 +607,7 @@ class WBRMTrainer:
             },
             "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
             "data_seconds": self.data_seconds,
-            "config": config_as_dict(self.cfg),
+            "config": config_as_dict(self.cfg, self.task),
         }
         if self.ratio_network is not None and ratio_records:
             best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
@@ -640,7 +645,7 @@ class WBRMTrainer:
             "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
             "data_fingerprint": self.data_fingerprint,
-            "config": config_as_dict(self.cfg),
+            "config": config_as_dict(self.cfg, self.task),
         }
         if self.ratio_network is not None:
             fitter = self.ratio_fitter.state_dict()

@@ -65,9 +65,10 @@ def check_logger(logger_cfg, key: str = "logger") -> None:
             raise ValueError(f"{key}.{name}={value!r} is refused by wandb: {err}") from err
 
 
-def validate_run_settings(cfg) -> None:
+def validate_run_settings(cfg, task=None) -> None:
     """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
-    data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports."""
+    data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports.
+    ``task``: the env's task, when built already (else built here)."""
     for key, value in _leaves(cfg):
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"{key}={value!r}: every number in the config must be finite.")
@@ -87,4 +88,4 @@ def validate_run_settings(cfg) -> None:
         raise ValueError(f"q.num_action_samples must be >= 1, got {cfg.q.num_action_samples!r}.")
     check_device(cfg.device)
     check_logger(cfg.logger)
-    get_task(cfg.env).validate()  # the env's data settings, and what its ground truth supports
+    (task if task is not None else get_task(cfg.env)).validate()  # the env's data settings, and what its ground truth supports
