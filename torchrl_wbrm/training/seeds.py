@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -51,6 +50,7 @@ from torchrl_wbrm.objectives.functional import bellman_residual, effective_sampl
 from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, to_config
 from torchrl_wbrm.training.results import json_safe, write_json
 from torchrl_wbrm.training.stops import TrainingDiverged
+from torchrl_wbrm.training.trainer import WBRMTrainer, step_schedulers
 
 __all__ = ["SeedGroup", "VECTORISED_ALGOS", "aggregate", "not_vectorised", "run_seeds", "seed_config",
            "summarise_seeds"]
@@ -190,7 +190,6 @@ class SeedGroup:
     """
 
     def __init__(self, cfg, run_dir, *, progress: bool = True, loggers: dict | None = None):
-        from torchrl_wbrm.training.trainer import WBRMTrainer
 
         self.cfg: WBRMConfig = to_config(cfg)
         self.seeds = [int(s) for s in self.cfg.seeds]
@@ -518,11 +517,7 @@ class _QUpdate:
             figures.update(loss_actor=loss_actor.detach(), **actor_figures)
             if not self.fqi and self.loss.delay_value:
                 self._soft_update()
-        if self.schedulers:
-            with warnings.catch_warnings():  # an actor updated every k-th step has not stepped yet at step 1
-                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
-                for scheduler in self.schedulers.values():
-                    scheduler.step()
+        step_schedulers(self.schedulers)
         return figures
 
     def close(self) -> None:
@@ -616,7 +611,6 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
     """
     import sys
 
-    from torchrl_wbrm.training.trainer import WBRMTrainer
 
     cfg = to_config(cfg)
     if not cfg.seeds:

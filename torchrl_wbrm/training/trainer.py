@@ -49,7 +49,7 @@ from torchrl_wbrm.training.logging import configure_console, log_run_summary, pr
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
-from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim
+from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim, unique_dir
 from torchrl_wbrm.training.stops import (
     RunInterrupted,
     StopNow,
@@ -88,20 +88,22 @@ def set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
 
 
+def step_schedulers(schedulers: dict) -> None:
+    """One step of each learning-rate schedule in ``schedulers`` (an actor updated every k-th step has not stepped
+    its optimiser yet at step 1: torch's warning about that order is expected and silenced)."""
+    if not schedulers:
+        return
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
+        for scheduler in schedulers.values():
+            scheduler.step()
+
+
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
     """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
     created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
     second get directories of their own)."""
-    base = Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}"
-    base.parent.mkdir(parents=True, exist_ok=True)
-    for n in range(10_000):
-        path = base if n == 0 else base.with_name(f"{base.name}_{n}")
-        try:
-            path.mkdir()
-            return path
-        except FileExistsError:
-            continue
-    raise FileExistsError(f"no free run directory next to {base}")
+    return unique_dir(Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}")
 
 
 class WBRMTrainer:
@@ -446,11 +448,7 @@ class WBRMTrainer:
     def _q_step(self, step: int) -> dict:
         """One update of the configured algo on one batch of its buffer (then the learning-rate schedules)."""
         figures = self.algo.step(self._q_batches().sample(), step)
-        if self.schedulers:
-            with warnings.catch_warnings():  # an actor updated every k-th step has not stepped yet at step 1
-                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
-                for scheduler in self.schedulers.values():
-                    scheduler.step()
+        step_schedulers(self.schedulers)
         return figures
 
     def _q_batches(self) -> BufferBatches:
