@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.envs import LQRConfig, LQREnv
@@ -117,3 +118,14 @@ def tiny_lqr_config(*layers: dict, **overrides):
     from torchrl_wbrm.training.config import WBRMConfig
 
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), TINY_LQR, *layers, overrides))
+
+
+class Concat(nn.Module):
+    """A linear layer on its inputs concatenated along the last dim: a Q or actor network with a known answer."""
+
+    def __init__(self, linear: nn.Linear) -> None:
+        super().__init__()
+        self.linear = linear
+
+    def forward(self, *inputs):
+        return self.linear(torch.cat(inputs, -1))

@@ -17,22 +17,14 @@ from torchrl.objectives import SoftUpdate
 from torchrl_wbrm.envs import LQRConfig, LQREnv
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import MABOLoss, RobustDensityRatioLoss, WeightedBellmanLoss
+from tests.references import Concat
 
 GAMMA = 0.9
 
 
-class _Concat(nn.Module):
-    def __init__(self, linear: nn.Linear) -> None:
-        super().__init__()
-        self.linear = linear
-
-    def forward(self, *inputs):
-        return self.linear(torch.cat(inputs, -1))
-
-
 def _q(obs_dim=2, act_dim=1):
     torch.manual_seed(0)
-    return ValueOperator(_Concat(nn.Linear(obs_dim + act_dim, 1)), in_keys=["observation", "action"],
+    return ValueOperator(Concat(nn.Linear(obs_dim + act_dim, 1)), in_keys=["observation", "action"],
                          out_keys=["state_action_value"])
 
 
@@ -45,7 +37,7 @@ def _actor(obs_dim=2, act_dim=1):
 
 def _loss(cls=WeightedBellmanLoss, **kwargs):
     if cls is MABOLoss:
-        critic = ValueOperator(_Concat(nn.Linear(3, 1)), in_keys=["observation", "action"], out_keys=["adversary_weight"])
+        critic = ValueOperator(Concat(nn.Linear(3, 1)), in_keys=["observation", "action"], out_keys=["adversary_weight"])
         loss = MABOLoss(_q(), critic, actor_network=_actor(), delay_value=True, **kwargs)
     else:
         loss = cls(_q(), actor_network=_actor(), delay_value=True, **kwargs)

@@ -109,7 +109,7 @@ def test_a_clone_imports_its_top_level_configs():
     import torchrl_wbrm
     from torchrl_wbrm.configs import CONFIG_DIR
 
-    if not Path(torchrl_wbrm.__file__).resolve().is_relative_to(ROOT):
-        pytest.skip("torchrl_wbrm is not imported from this clone")
+    assert Path(torchrl_wbrm.__file__).resolve().is_relative_to(ROOT), (
+        f"torchrl_wbrm is imported from {torchrl_wbrm.__file__}, not from this clone: install it as the README says")
     assert CONFIG_DIR == ROOT / "configs" and (CONFIG_DIR / "wbrm_offline.yaml").is_file()
     assert not (ROOT / "torchrl_wbrm" / "configs").exists()

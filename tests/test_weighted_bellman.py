@@ -14,6 +14,7 @@ from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss, weighted_bellman_residual
+from tests.references import Concat
 
 GAMMA = 0.5
 
@@ -25,16 +26,7 @@ def _linear_q(obs_dim=2, act_dim=1, in_keys=("observation", "action")) -> ValueO
     with torch.no_grad():
         linear.weight.copy_(torch.arange(1, obs_dim + act_dim + 1, dtype=torch.float32).unsqueeze(0) / 4)
         linear.bias.fill_(0.5)
-    return ValueOperator(_Concat(linear), in_keys=list(in_keys), out_keys=["state_action_value"])
-
-
-class _Concat(nn.Module):
-    def __init__(self, linear: nn.Linear) -> None:
-        super().__init__()
-        self.linear = linear
-
-    def forward(self, *inputs):
-        return self.linear(torch.cat(inputs, -1))
+    return ValueOperator(Concat(linear), in_keys=list(in_keys), out_keys=["state_action_value"])
 
 
 def _linear_actor(obs_dim=2, act_dim=1, in_keys=("observation",)) -> TensorDictModule:

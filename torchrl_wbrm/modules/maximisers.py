@@ -16,6 +16,7 @@ loss chose), and returns the maximum over actions, of shape ``batch_shape``. Cal
 """
 from __future__ import annotations
 
+import abc
 from typing import Callable, Mapping
 
 import torch
@@ -89,11 +90,12 @@ def max_q_over_candidates(
     return max_over_candidates(q, observations, candidates, tensordict.batch_size, action_key=action_key)
 
 
-class ActionMaximiser(nn.Module):
+class ActionMaximiser(nn.Module, abc.ABC):
     """Base class: :meth:`maximise` on tensors; called as a module on a TensorDict module and a TensorDict."""
 
     needs_actor: bool = False
 
+    @abc.abstractmethod
     def maximise(
         self,
         q: QFunction,
@@ -105,7 +107,6 @@ class ActionMaximiser(nn.Module):
     ) -> torch.Tensor:
         """``max_a Q(x, a)`` of shape ``batch_shape``, with ``q`` a :data:`QFunction` and ``observations`` Q's inputs
         other than the action."""
-        raise NotImplementedError(f"{type(self).__name__} must implement maximise(q, observations, batch_shape, ...).")
 
     def forward(
         self,
