@@ -9,11 +9,12 @@
 Every run is the main recipe with the dataset keys only (``env=minari env.minari.expert=... env.minari.behaviour=...``)
 plus ``algo=<name>``; ``--budgets`` multiplies the env's default ``q.steps`` (and ``q.eval_every``), to check that a
 longer run does not lose return. Runs go through the studies' shared runner
-(:func:`torchrl_wbrm.training.runs.run_cells`) into ``<out>/<task>/<algo>/x<budget>/seed<seed>``; a finished run is not
-run again. ``tables.md`` then gives, per task and algorithm, the normalised score (0 = uniform random actions,
-100 = the expert; the datasets' Minari reference scores) as mean ± 95% CI over seeds, the raw return, the behaviour
-data's own score, how many runs were flagged (``q_blow_up``, ``below_behaviour``, ``ratio_collapse``) and the wall
-seconds per run (one torch thread, ``--jobs`` runs at a time).
+(:func:`torchrl_wbrm.training.runs.run_cells`: a cell's seeds in one process) into
+``<out>/<task>/<algo>/x<budget>/seed<seed>``; a finished run is not run again. ``tables.md`` then gives, per task
+and algorithm, the normalised score (0 = uniform random actions, 100 = the expert; the datasets' Minari reference
+scores) as mean ± 95% CI over seeds, the raw return, the behaviour data's own score, how many runs were flagged
+(``q_blow_up``, ``below_behaviour``, ``ratio_collapse``) and the wall seconds per run (one torch thread, ``--jobs``
+processes at a time; seeds trained in one process share its time equally).
 """
 from __future__ import annotations
 

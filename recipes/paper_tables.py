@@ -20,9 +20,10 @@ envs' cells again at other step budgets, each its own runs on the same data and 
 run always improves at its end; whether the table's budget suffices shows only against runs of a larger one
 (:func:`budget_table`, ``budget_check.png``).
 
-Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: local
-processes, or a Hydra launcher with ``--launcher``) into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the
-same data for a given seed, collected once into a ``data_cache``. Then it writes ``tables.md``:
+Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: an
+(env, algorithm)'s seeds in one local process, ``--jobs`` of them at a time, or a Hydra launcher with ``--launcher``)
+into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the same data for a given seed, collected once into a
+``data_cache``. Then it writes ``tables.md``:
 Table 2 (LQR: mean 20-step discounted return ± 95% CI per algorithm and LQR env, beside each env's exact optimum and
 the paper's figures), the paired regret, Q̂'s error relative to Q*'s spread and Q̂'s overestimation bias
 mean(Q̂ − Q*) on behaviour and expert data (every LQR env that ran: an env is LQR when its runs' config says
@@ -164,7 +165,8 @@ def tables(out: Path) -> str:
     lines = ["| algorithm | " + " | ".join(envs) + " |", "|" + "---|" * (len(envs) + 1)]
     for a in algos:
         lines.append(f"| {a} | " + " | ".join(cell(a, e, "wall_seconds", 0) for e in envs) + " |")
-    parts.append("### Cost: wall seconds per run (one torch thread, two runs at a time)\n\n" + "\n".join(lines))
+    parts.append("### Cost: wall seconds per run (one torch thread; seeds trained in one process share its "
+                 "time equally)\n\n" + "\n".join(lines))
     curves = learning_curves(records)
     if curves:
         parts.append("### Budget and convergence: the last evaluation against the earlier ones\n\n"
@@ -595,7 +597,8 @@ def main() -> None:
     parser.add_argument("--algos", nargs="+", default=None, help=f"default: every registered algo ({available_algos()})")
     parser.add_argument("--envs", nargs="+", default=DEFAULT_ENVS)
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--jobs", type=int, default=2, help="parallel local runs")
+    parser.add_argument("--jobs", type=int, default=2, help="parallel local processes, one per (env, algorithm) "
+                        "and its seeds")
     parser.add_argument("--launcher", default=None,
                         help="a Hydra launcher instead of local processes: submitit_local, submitit_slurm, ray "
                              "(pip install -e '.[sweeps]')")

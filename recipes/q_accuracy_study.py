@@ -5,8 +5,9 @@
     python recipes/q_accuracy_study.py --quick           # a smoke version (seconds; CI runs it)
 
 Every cell is a set of overrides of ``configs/wbrm_offline.yaml`` on top of the recipe's defaults (the weighted
-method, learned ŵ and its shaping), one factor changed at a time, run for several seeds in parallel processes with
-one torch thread each. Finished cells (their results.json exists) are skipped, so an interrupted study resumes.
+method, learned ŵ and its shaping), one factor changed at a time, run for several seeds (a cell's seeds together in
+one process, the cells in parallel processes, one torch thread each). Finished cells (their results.json exists) are
+skipped, so an interrupted study resumes.
 
 Systems: the paper's LQR exp1-3 and two not in the paper: ``lqr_nondiag`` (coupled F, G and R) and ``lqr_large_f``
 (F = 0.9 I). Factors: Q's hidden activation (ReLU, SiLU, ELU, GELU, Tanh), the target rate τ, the batch size, a

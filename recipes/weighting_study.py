@@ -6,10 +6,10 @@
     python recipes/weighting_study.py --blocks regimes --regimes "behaviour start wide (x₀ ~ N(0, 3² I))"
     python recipes/weighting_study.py ... --first-seed 10 --seeds 10 --out <new>   # fresh seeds 10-19
 
-Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (in parallel processes with
-one torch thread each). Cells already finished (their results.json exists) are skipped, so an interrupted study
-resumes. Outputs in ``--out``: one run directory per cell and seed, ``tables.md`` (mean ± 95% CI over seeds) and
-``weighting_study.png``.
+Each cell is a set of overrides of ``configs/wbrm_offline.yaml`` run for several seeds (its seeds together in one
+process, the cells in parallel processes, one torch thread each). Cells already finished (their results.json exists)
+are skipped, so an interrupted study resumes. Outputs in ``--out``: one run directory per cell and seed, ``tables.md``
+(mean ± 95% CI over seeds) and ``weighting_study.png``.
 
 Blocks:
 - ``weighting`` (LQR exp1-3): unweighted vs the paper's learned ratio vs the true ratio, the ratio stabilisers

@@ -1,9 +1,11 @@
-"""The studies' ``--quick`` versions (CI), each in a subprocess as a user would launch it.
+"""The studies' ``--quick`` versions (CI), each in a subprocess as a user would launch it, and the runner's local
+path (a cell's seeds in one process) on a tiny LQR config.
 
 Apart from ``tests/test_recipes.py`` (the main recipe's smoke runs) so that ``--dist loadfile`` can put the two
 files' minutes of subprocess runs on different workers."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -12,7 +14,15 @@ import pytest
 
 from tests.references import ROOT
 
-pytestmark = pytest.mark.slow  # each test runs a study in a subprocess
+pytestmark = pytest.mark.slow  # each test runs a study in a subprocess, or trains
+
+#: the tiny LQR config (tests/references.py) as study overrides, after the ``quick`` study budget
+TINY_BUDGET = [
+    "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
+    "ratio.steps=30", "ratio.batch_size=64", "ratio.eval_every=10", "ratio.num_cells=[16,16]",
+    "q.steps=40", "q.batch_size=32", "q.eval_every=20", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
+    "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=300",
+]
 
 
 def run_study(script: str, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:
@@ -79,3 +89,81 @@ def test_ablations_quick(tmp_path):
         assert f"### {block} (LQR exp1)" in tables
     assert "| KL (α → 0) | wbrm | 1 |" in tables and "| σ_b=0.5 (default) | brm | 1 |" in tables
     assert len(list(tmp_path.rglob("results.json"))) == 3  # default wbrm, default brm, KL: the default ran once
+
+
+# ---------------------------------------------------------------------- the runner: a cell's seeds in one process
+def _cell(method: str = "wbrm") -> dict:
+    return {"block": "b", "env": "lqr_exp1", "setting": "s", "method": method,
+            "overrides": ["env=lqr_exp1", f"algo={method}"]}
+
+
+def test_a_cells_seeds_train_as_one_job_with_a_separate_runs_figures(tmp_path, monkeypatch):
+    """Locally, ``run_cells`` trains a cell's seeds as one ``run_seeds`` job: each seed's ``results.json`` is where
+    ``cell_dir`` says, with the cell's labels and its share of the job's wall time, and holds the final figures of a
+    separate run with that seed (within the evaluation's 95% CI); the job's combined results are ``seeds.json``, so
+    ``load_results`` reads each seed once. A rerun skips the finished seeds (a new one runs alone), and refuses
+    finished seeds of another config."""
+    from torchrl_wbrm.training import seeds as seeds_module
+    from torchrl_wbrm.training.reporting import load_results
+    from torchrl_wbrm.training.runs import SEEDS_RECORD, _overrides, cell_dir, run_cells, run_overrides, study_budget
+
+    jobs = []
+    run_seeds = seeds_module.run_seeds
+
+    def counted(cfg, run_dir, **kwargs):
+        jobs.append((list(cfg.seeds), run_dir))
+        return run_seeds(cfg, run_dir, **kwargs)
+
+    monkeypatch.setattr(seeds_module, "run_seeds", counted)
+    cell, budget, out = _cell(), [*study_budget("quick"), *TINY_BUDGET], tmp_path / "study"
+    run_cells([cell], [0, 1], budget, out, jobs=1)
+    parent = cell_dir(out, cell, 0).parent
+    assert jobs == [([0, 1], parent)]  # one job for the cell's two seeds
+    assert not (parent / "results.json").exists()
+    record = json.loads((parent / SEEDS_RECORD).read_text())
+    assert record["kind"] == "seeds" and record["vectorised"] and record["seeds"] == [0, 1]
+    labels = {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "wbrm"}
+    for seed in (0, 1):
+        results = json.loads((cell_dir(out, cell, seed) / "results.json").read_text())
+        assert results["seed"] == seed and results["study"] == labels and results["status"] == "finished"
+        assert results["job"]["seeds"] == [0, 1] and results["job"]["vectorised"]
+        assert results["wall_seconds"] == pytest.approx(results["job"]["wall_seconds"] / 2)
+        alone = run_overrides(_overrides(cell, seed, budget), tmp_path / "alone" / f"seed{seed}")
+        for key in ("regret", "return"):
+            assert abs(results["final"][key] - alone["final"][key]) <= alone["final"][f"{key}_ci"], (seed, key)
+        assert results["final"]["q_error_expert"] == pytest.approx(alone["final"]["q_error_expert"], rel=0.05)
+    records = load_results(out)
+    assert sorted(r["seed"] for r in records) == [0, 1] and all(r["study"] == labels for r in records)
+    assert len(list(out.rglob("results.json"))) == 2
+
+    before = {s: (cell_dir(out, cell, s) / "results.json").read_text() for s in (0, 1)}
+    run_cells([cell], [0, 1, 2], budget, out, jobs=1)  # seeds 0 and 1 are finished; seed 2 runs alone
+    assert len(jobs) == 1
+    assert {s: (cell_dir(out, cell, s) / "results.json").read_text() for s in (0, 1)} == before
+    third = json.loads((cell_dir(out, cell, 2) / "results.json").read_text())
+    assert third["seed"] == 2 and third["study"] == labels and "job" not in third
+    with pytest.raises(ValueError, match=r"q\.steps: 40 -> 41.*another directory"):
+        run_cells([cell], [0, 1], [*budget, "q.steps=41"], out, jobs=1)
+
+
+def test_a_cells_seeds_are_split_into_the_job_and_single_runs(tmp_path, monkeypatch):
+    """Which of a cell's seeds the job trains: not the finished ones, nor one with a checkpoint (an interrupted single
+    run, resumed on its own), nor a lone unfinished seed (a single run, which checkpoints)."""
+    from torchrl_wbrm.training import runs
+    from torchrl_wbrm.training.config import config_as_dict
+
+    cell, budget, out = _cell("brm"), [*runs.study_budget("quick"), "q.steps=7"], tmp_path
+    done = runs.cell_dir(out, cell, 1)
+    done.mkdir(parents=True)
+    config = config_as_dict(runs.compose_recipe_config(runs._overrides(cell, 1, budget)))
+    (done / "results.json").write_text(json.dumps({"status": "finished", "config": config}))
+    runs.cell_dir(out, cell, 0).mkdir(parents=True)
+    (runs.cell_dir(out, cell, 0) / "checkpoint.pt").write_bytes(b"")
+    calls = []
+    monkeypatch.setattr(runs, "run_cell", lambda cell, seed, *args: calls.append(("alone", seed)))
+    monkeypatch.setattr(runs, "_run_seeds_job", lambda cell, seeds, *args: calls.append(("job", seeds)))
+    runs.run_cell_seeds(cell, [0, 1, 2, 3], budget, out)
+    assert calls == [("alone", 0), ("job", [2, 3])]
+    calls.clear()
+    runs.run_cell_seeds(cell, [1, 2], budget, out)
+    assert calls == [("alone", 2)]

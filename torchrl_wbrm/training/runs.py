@@ -1,10 +1,15 @@
 """The studies' one job runner: run the main recipe's config in-process from Hydra overrides.
 
 A study (``recipes/paper_tables.py``, ``ablations.py``, ``weighting_study.py``, ``convergence_study.py``,
-``q_accuracy_study.py``) is a list of *cells*, each a dict of labels and ``"overrides"``; :func:`run_cells` runs every
-(cell, seed) with a budget (the overrides that come first; :func:`study_budget` reads the studies' budgets from
-``configs/study_budgets.yaml``), locally in parallel processes or through a Hydra launcher (Slurm, Ray), and skips
-the runs whose ``results.json`` exists, so a study resumes where it stopped.
+``q_accuracy_study.py``, ``benchmark_tables.py``) is a list of *cells*, each a dict of labels and ``"overrides"``;
+:func:`run_cells` runs every (cell, seed) with a budget (the overrides that come first; :func:`study_budget` reads
+the studies' budgets from ``configs/study_budgets.yaml``), locally or through a Hydra launcher (Slurm, Ray), and
+skips the runs whose ``results.json`` exists, so a study resumes where it stopped.
+
+Locally, a cell's seeds train together in one process (:func:`run_cell_seeds`: one
+:func:`~torchrl_wbrm.training.seeds.run_seeds` job, vectorised over the seeds for ``wbrm``, ``brm`` and ``fqi``), and
+``jobs`` processes run the cells in parallel. Each seed's run directory (:func:`cell_dir`) holds what a separate run
+writes there, so whatever reads a study's output finds the same files.
 """
 from __future__ import annotations
 
@@ -19,10 +24,12 @@ from torchrl_wbrm.configs import CONFIG_DIR
 
 __all__ = [
     "LABELS",
+    "SEEDS_RECORD",
     "cell_dir",
     "compose_recipe_config",
     "finished_results",
     "run_cell",
+    "run_cell_seeds",
     "run_cells",
     "run_overrides",
     "study_budget",
@@ -30,6 +37,9 @@ __all__ = [
 
 #: The labels of a cell that name its run directory (:func:`cell_dir`) and go into its results under ``"study"``.
 LABELS = ("block", "env", "setting", "method")
+
+#: The file, in a cell's seed-parent directory, that records the cell's last multi-seed job (:func:`run_cell_seeds`).
+SEEDS_RECORD = "seeds.json"
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -134,19 +144,79 @@ def run_cell(cell: dict, seed: int, budget: list[str], out: str, labels=LABELS) 
     return str(run_dir)
 
 
+def run_cell_seeds(cell: dict, seeds, budget: list[str], out: str, labels=LABELS) -> list[str]:
+    """Run one study cell (``cell["overrides"]`` after ``budget``) for its unfinished ``seeds`` in this process, each
+    into its :func:`cell_dir`, with the cell's labels in its results under ``"study"``; returns the seeds' run
+    directories.
+
+    A finished seed (:func:`finished_results`, which refuses a ``results.json`` of another config) is skipped. A seed
+    whose directory holds a checkpoint (an interrupted single run) resumes from it on its own, as :func:`run_cell`
+    does, and so does a cell with one unfinished seed (a single run, which checkpoints). The other seeds train as one
+    job: the cell's config with ``seeds=[...]``, by :func:`~torchrl_wbrm.training.seeds.run_seeds` into the seeds'
+    parent directory, so each seed's directory holds what its separate run writes there (a vectorised job writes no
+    checkpoint, so its interrupted seeds run again; seeds trained one at a time checkpoint, and resume on their
+    own). Each seed's ``wall_seconds`` is its share of the job's wall time (the
+    job's divided by its number of seeds), and ``"job"`` records the job's seeds, wall time and whether it was
+    vectorised. The job's combined results (``"kind": "seeds"``) go to :data:`SEEDS_RECORD` in the parent
+    directory, not to a ``results.json`` there: each seed's run is read once, from its own directory.
+    """
+    from torchrl_wbrm.keys import CHECKPOINT
+
+    study = {k: cell[k] for k in labels}
+    dirs = {int(s): cell_dir(out, cell, int(s), labels=labels) for s in seeds}
+    alone, together = [], []
+    for seed, run_dir in dirs.items():
+        if finished_results(run_dir, compose_recipe_config(_overrides(cell, seed, budget))) is None:
+            (alone if (run_dir / CHECKPOINT).is_file() else together).append(seed)
+    if len(together) == 1:
+        alone, together = sorted(alone + together), []
+    for seed in alone:
+        run_cell(cell, seed, budget, out, labels)
+    if together:
+        _run_seeds_job(cell, together, budget, dirs, study)
+    return [str(d) for d in dirs.values()]
+
+
+def _run_seeds_job(cell: dict, seeds: list[int], budget: list[str], dirs: dict[int, Path], study: dict) -> None:
+    """``seeds`` of ``cell`` as one :func:`~torchrl_wbrm.training.seeds.run_seeds` job (see :func:`run_cell_seeds`)."""
+    import torch
+
+    from torchrl_wbrm.training.results import write_json
+    from torchrl_wbrm.training.seeds import run_seeds
+
+    parent = dirs[seeds[0]].parent
+    cfg = compose_recipe_config([*_overrides(cell, None, budget), f"seeds=[{','.join(map(str, seeds))}]"])
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    combined = run_seeds(cfg, parent, progress=False)
+    wall = time.perf_counter() - start
+    (parent / "results.json").unlink(missing_ok=True)  # the seeds' results are read from their own directories
+    job = {"seeds": seeds, "wall_seconds": wall, "vectorised": combined["vectorised"]}
+    runs = []
+    for run in combined["runs"]:
+        path = dirs[int(run["seed"])] / "results.json"
+        results = json.loads(path.read_text()) if path.is_file() else dict(run)
+        results.update(study=study, wall_seconds=wall / len(seeds), job=job)
+        write_json(path, results)
+        runs.append(results)
+    write_json(parent / SEEDS_RECORD, {**combined, "runs": runs, "study": study, "wall_seconds": wall})
+
+
 def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLike, *, jobs: int = 2,
               labels=LABELS, launcher: str | None = None, launcher_args=()) -> None:
     """Every (cell, seed), each in its :func:`cell_dir`.
 
-    By default in ``jobs`` local processes (joblib; one torch thread each), with a tqdm bar. With ``launcher`` (a
-    Hydra launcher: ``submitit_local``, ``submitit_slurm``, ``ray``; ``pip install -e '.[sweeps]'``) each cell is one
-    Hydra multirun of ``recipes/wbrm_offline.py`` over the seeds, with ``launcher_args`` (e.g.
-    ``hydra.launcher.partition=cpu``); the launcher returns when its jobs have finished, and the cell's labels are then
-    written into each run's results under ``"study"``, as the local runs do.
+    By default each cell's seeds train together in one process (:func:`run_cell_seeds`: one multi-seed job, the
+    finished seeds skipped), with ``jobs`` local processes over the cells (joblib; one torch thread each) and a
+    tqdm bar. With ``launcher`` (a Hydra launcher: ``submitit_local``, ``submitit_slurm``, ``ray``;
+    ``pip install -e '.[sweeps]'``) each cell is one Hydra multirun of ``recipes/wbrm_offline.py`` over the seeds,
+    one job per seed, with ``launcher_args`` (e.g. ``hydra.launcher.partition=cpu``); the launcher returns when its
+    jobs have finished, and the cell's labels are then written into each run's results under ``"study"``, as the
+    local runs do.
     """
     seeds = list(seeds)
-    work = [(cell, seed) for cell in cells for seed in seeds]
-    print(f"{len(work)} runs ({len(cells)} cells x {len(seeds)} seeds) into {out}", flush=True)
+    print(f"{len(cells) * len(seeds)} runs ({len(cells)} cells x {len(seeds)} seeds) into {out}"
+          + ("" if launcher else ", each cell's seeds in one process"), flush=True)
     if launcher:
         for cell in cells:
             _launch_cell(cell, seeds, budget, Path(out), labels, launcher, list(launcher_args))
@@ -155,8 +225,8 @@ def run_cells(cells: list[dict], seeds, budget: list[str], out: str | os.PathLik
     from tqdm.auto import tqdm
 
     runner = Parallel(n_jobs=jobs, return_as="generator_unordered")
-    for _ in tqdm(runner(delayed(run_cell)(cell, seed, budget, str(out), labels) for cell, seed in work),
-                  total=len(work)):
+    for _ in tqdm(runner(delayed(run_cell_seeds)(cell, seeds, budget, str(out), labels) for cell in cells),
+                  total=len(cells), unit="cell"):
         pass
 
 
