@@ -167,7 +167,7 @@ class WBRMTrainer:
 
     def _init(self, resume: bool, logger, progress: bool) -> None:
         if resume:
-            self.resume_changes = changed_keys(dict(self._resume_sd["config"]), config_as_dict(self.cfg, self.task))
+            self.resume_changes = changed_keys(dict(self._resume_sd["config"]), self.config_record())
         else:
             check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)  # overwrite=true: the earlier run's outputs go
         self._stop = None  # StopSignals while run() runs
@@ -580,7 +580,7 @@ class WBRMTrainer:
             "final": final[-1] if final else {},
             "flags": ["diverged"],
             "data_seconds": self.data_seconds,
-            "config": config_as_dict(self.cfg, self.task),
+            "config": self.config_record(),
         }
         write_json(self.run_dir / "results.json", results)
         write_json(self.run_dir / "history.json", self.history)
@@ -603,9 +603,11 @@ class WBRMTrainer:
                 "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
                 **({k: v for k, v in ratio_records[-1].items() if k.startswith("ratio_")} if ratio_records else {}),
             },
-            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
+            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")},
+                     # env.minari.expert_episodes: which of the expert dataset's episodes this seed drew
+                     **{k: v for k, v in self.datasets.metadata.items() if k == "expert_episode_ids" and v is not None}},
             "data_seconds": self.data_seconds,
-            "config": config_as_dict(self.cfg, self.task),
+            "config": self.config_record(),
         }
         if self.ratio_network is not None and ratio_records:
             best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
@@ -634,6 +636,13 @@ class WBRMTrainer:
         return results
 
     # ------------------------------------------------------------------ checkpoints
+    def config_record(self) -> dict:
+        """The run's config as the plain dict saved under ``"config"`` (:func:`config_as_dict`), built once: every
+        checkpoint and the results repeat it, and building it merges the schema anew each time."""
+        if getattr(self, "_config_record", None) is None:
+            self._config_record = config_as_dict(self.cfg, self.task)
+        return copy.deepcopy(self._config_record)
+
     def state_dict(self) -> dict:
         sd = {
             "state": dict(self.state),
@@ -643,7 +652,7 @@ class WBRMTrainer:
             "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
             "data_fingerprint": self.data_fingerprint,
-            "config": config_as_dict(self.cfg, self.task),
+            "config": self.config_record(),
         }
         if self.ratio_network is not None:
             fitter = self.ratio_fitter.state_dict()
