@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests import inprocess
+
 ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.slow  # each test runs a recipe in a subprocess
@@ -44,16 +46,15 @@ TINY_MC = [
 ]
 
 
-def run_recipe(script: str, *overrides: str, check: bool = True) -> subprocess.CompletedProcess:
+def run_recipe(script: str, *overrides: str, check: bool = True, process: bool = False) -> subprocess.CompletedProcess:
+    """``python recipes/<script> <overrides>``: in this process (:mod:`tests.inprocess`), or with ``process`` as its
+    own ``python``, exactly as a user starts it."""
     env = {**os.environ, "WANDB_MODE": "offline", "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / script), *overrides],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    if process:
+        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *overrides], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=300)
+    else:
+        proc = inprocess.run_script(ROOT / "recipes" / script, *overrides, cwd=ROOT, env=env)
     if check and proc.returncode != 0:
         raise AssertionError(f"{script} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     return proc
@@ -62,7 +63,9 @@ def run_recipe(script: str, *overrides: str, check: bool = True) -> subprocess.C
 # lqr_exp1 runs every algo in tests/test_baselines.py; here one run per logger: wandb (offline) and the default csv
 @pytest.mark.parametrize("env_name, logger", [("lqr_exp2", "wandb"), ("lqr_exp3", "csv")])
 def test_wbrm_offline_lqr(tmp_path, env_name, logger):
-    proc = run_recipe("wbrm_offline.py", f"env={env_name}", f"logger={logger}", *TINY_LQR, f"hydra.run.dir={tmp_path}")
+    # the wandb run as its own python (wandb starts a service process of its own), the csv one in this process
+    proc = run_recipe("wbrm_offline.py", f"env={env_name}", f"logger={logger}", *TINY_LQR, f"hydra.run.dir={tmp_path}",
+                      process=logger == "wandb")
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["env"] == env_name
     assert {"regret", "regret_ci", "q_error_expert", "return"} <= results["final"].keys()
