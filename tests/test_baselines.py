@@ -20,8 +20,6 @@ import functools
 import json
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -34,6 +32,7 @@ from torchrl_wbrm.algos import ALGOS
 from torchrl_wbrm.modules import ActionGrid
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 
+from tests import inprocess
 from tests.references import ROOT, compose_recipe, lqr_env, policy_q, reference_regrets, relative_q_error
 from tests.test_training import tiny_config
 
@@ -53,16 +52,14 @@ RECIPE_TINY = [
 
 @pytest.fixture(scope="session")
 def recipe_runs(tmp_path_factory):
-    """One ``python recipes/wbrm_offline.py -m algo=<all>`` (Hydra's basic launcher, one job after another), with the
+    """One ``python recipes/wbrm_offline.py -m algo=<all>`` (Hydra's basic launcher, one job after another; run in
+    this process, :mod:`tests.inprocess`), with the
     recipe's defaults for plots and logger; returns (the sweep directory, the completed process)."""
     out = tmp_path_factory.mktemp("recipe_all_algos")
     algos = ["wbrm", *sorted(set(ALGOS) - {"wbrm"})]
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "-m", f"algo={','.join(algos)}", *RECIPE_TINY,
-         f"hydra.sweep.dir={out}", "hydra.sweep.subdir=${algo}"],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
-        env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"},
-    )
+    proc = inprocess.recipe("-m", f"algo={','.join(algos)}", *RECIPE_TINY, f"hydra.sweep.dir={out}",
+                            "hydra.sweep.subdir=${algo}", cwd=ROOT,
+                            env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"})
     return out, proc
 
 
