@@ -204,8 +204,9 @@ def test_resume_restores_the_runs_own_overrides(tmp_path):
 
 @pytest.mark.slow
 def test_the_printed_resume_command_works_as_printed(tmp_path):
-    """A run started with overrides (and the default dated run directory) is interrupted; the command it prints is
-    run exactly as printed and finishes the run with the overrides it started with."""
+    """A run started with overrides (and the default dated run directory) is interrupted with SIGINT: it exits 130
+    with one line naming the stage and the step of its checkpoint, and the command it prints is run exactly as
+    printed and finishes the run with the overrides it started with."""
     import shlex
     import signal
     import time
@@ -224,7 +225,12 @@ def test_the_printed_resume_command_works_as_printed(tmp_path):
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err[-2000:]
-    command = err.strip().splitlines()[-1].split("Resume with: ", 1)[1]
+    last = err.strip().splitlines()[-1]  # one line, naming the stage and step its checkpoint holds
+    assert last.startswith("SIGINT received: stopped in stage 'q' at step ") and "Traceback" not in err, err[-2000:]
+    (checkpoint,) = tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*/checkpoint.pt")
+    step = torch.load(checkpoint, weights_only=False)["state"]["step"]
+    assert step > 0 and f"at step {step}," in last, (step, last)
+    command = last.split("Resume with: ", 1)[1]
     assert command.startswith(f"python {ROOT / 'recipes' / 'wbrm_offline.py'} resume=") and "_seed3" in command
     resumed = subprocess.run(shlex.split(command), cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
