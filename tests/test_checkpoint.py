@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests import inprocess
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.results import TEST_PAUSE_ENV
@@ -113,9 +114,7 @@ def test_a_crafted_checkpoint_is_refused_by_the_trainer_and_runs_nothing(finishe
 def test_a_crafted_checkpoint_is_refused_by_the_recipe_in_one_line(finished, tmp_path):
     marker = tmp_path / "marker"
     path = _crafted(finished, tmp_path / "run", marker, "torch_save")
-    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), f"resume={path.parent}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = inprocess.recipe(f"resume={path.parent}", cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode != 0
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr[-3000:]
@@ -140,9 +139,7 @@ def test_a_run_record_naming_more_than_the_recipes_settings_is_refused(finished,
     (run / ".hydra").mkdir()
     record = run / ".hydra" / "overrides.yaml"
     record.write_text(f'- "{override.replace("MARKER", str(marker))}"\n- q.steps=40\n')
-    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), f"resume={run}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = inprocess.recipe(f"resume={run}", cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode != 0
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
@@ -250,10 +247,9 @@ def _run_until_paused(cmd: list[str], pause: str, cwd: Path, timeout: float = 30
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
-    """The run without interruption: its figures."""
+    """The run without interruption (in this process, :mod:`tests.inprocess`): its figures."""
     root = tmp_path_factory.mktemp("uninterrupted")
-    proc = subprocess.run([*RECIPE, *OVERRIDES, f"hydra.run.dir={root / 'run'}"], cwd=root, env=_env(),
-                          capture_output=True, text=True, timeout=600)
+    proc = inprocess.recipe(*OVERRIDES, f"hydra.run.dir={root / 'run'}", cwd=root, env=_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
     return _figures(root / "run")
 
@@ -279,7 +275,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_figures(uninterrupted, tmp_
                 "results.json:1": {"stage": "done", "step": 40}}[point]
     assert state == expected, written
 
-    resumed = subprocess.run([*RECIPE, f"resume={run_dir}"], cwd=tmp_path, env=_env(), capture_output=True,
-                             text=True, timeout=600)  # the command a user types: the run's overrides come back
+    # the command a user types (run in this process): the run's overrides come back
+    resumed = inprocess.recipe(f"resume={run_dir}", cwd=tmp_path, env=_env())
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert _figures(run_dir) == uninterrupted
