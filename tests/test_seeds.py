@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from tests import inprocess
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.evaluation.stats import mean_ci
 from torchrl_wbrm.training.config import validate_config
@@ -33,12 +32,8 @@ def test_recipe_seeds_match_separate_runs(tmp_path):
     """``python recipes/wbrm_offline.py seeds=[0,1]`` (vectorised): each seed's final figures are those of a
     separate run with that seed, within the evaluation's 95% CI; results.json holds both and their aggregate."""
     run_dir = tmp_path / "two_seeds"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), "seeds=[0,1]", *TINY_OVERRIDES,
-         f"hydra.run.dir={run_dir}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600,
-        env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
-    )
+    proc = inprocess.recipe("seeds=[0,1]", *TINY_OVERRIDES, f"hydra.run.dir={run_dir}", cwd=tmp_path,
+                            env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "vectorised over seeds" in proc.stdout
     results = json.loads((run_dir / "results.json").read_text())
