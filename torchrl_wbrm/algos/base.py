@@ -192,8 +192,9 @@ class ExpertCloning:
     ``α / mean_D |Q|`` wherever Q keeps one sign over the batch, as on the LQR tasks) and ``h`` the half-width of
     the action box (the cloning term has the same size whatever the action bounds; ``m`` the action dimension).
     S^e, the expert samples the method already holds for stage 1, keeps μ on the expert's support; Q then moves it
-    only where Q says it pays. Its batches are drawn from a torchrl replay buffer
-    over S^e with the global generator (checkpointed with the run).
+    only where Q says it pays. Its batches are drawn from a torchrl replay buffer over S^e with the global generator
+    (checkpointed with the run), as the buffer's ``sample()`` draws them, gathered by
+    :class:`~torchrl_wbrm.data.sampling.BufferBatches` (the same indices, without the buffer's per-call bookkeeping).
 
     Args:
         actor: the actor (its parameters are the loss's ``actor_network_params``).
@@ -218,11 +219,34 @@ class ExpertCloning:
     def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params) -> tuple[torch.Tensor, dict]:
         """``loss_q = −mean_D Q(x, μ(x))`` and ``q_mean_abs = |mean_D Q(x, μ(x))|``; returns the actor's loss and the
         cloning term (detached)."""
-        expert = self.buffer.sample()
+        batches = self.batches()
+        expert = self.buffer.sample() if batches is None else batches.sample()
         inputs = {key: expert.get(key) for key in self.actor.in_keys}
         mu = self.network_call(params)(params, inputs, expert.batch_size)
-        bc = ((mu - expert["action"]) / self.half_width.to(mu.device)).pow(2).mean()
+        if self.half_width.device != mu.device:
+            self.half_width = self.half_width.to(mu.device)
+        bc = ((mu - expert["action"]) / self.half_width).pow(2).mean()
         return td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc, {"expert_bc_loss": bc.detach()}
+
+    def batches(self):
+        """S^e's batches: :class:`~torchrl_wbrm.data.sampling.BufferBatches` over :attr:`buffer` (the indices
+        ``buffer.sample()`` would draw, gathered into tensors allocated once), built on first use and again when
+        :attr:`buffer` is replaced; ``None`` where :attr:`buffer` is not a replay buffer ``BufferBatches`` reads (a
+        buffer with another sampler, or any object with a ``sample()``): its ``sample()`` is then called."""
+        from torchrl.data import TensorDictReplayBuffer
+
+        from torchrl_wbrm.data.sampling import BufferBatches
+
+        cached = self.__dict__.get("_batches")
+        if cached is None or cached[0] is not self.buffer:
+            batches = None
+            if isinstance(self.buffer, TensorDictReplayBuffer):
+                try:
+                    batches = BufferBatches(self.buffer)
+                except (TypeError, ValueError):
+                    batches = None
+            cached = self._batches = (self.buffer, batches)
+        return cached[1]
 
     def network_call(self, params) -> NetworkCall:
         """How μ is called: a :class:`~torchrl_wbrm.objectives._fast.NetworkCall` of the actor, built on the first

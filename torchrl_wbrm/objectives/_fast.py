@@ -114,11 +114,14 @@ class NetworkCall:
             return get_entry(out, self.out_key, self.why)
         saved = []
         slots = self.slots
+        # a TensorDictParams' own two dicts walked in place (no generator per entry), any other TensorDict by _entries
+        stores = (params._parameters, params._buffers) if isinstance(params, TensorDictParams) else (_entries(params),)
         try:
-            for name, value in _entries(params):
-                container, attr = slots[name]
-                saved.append((container, attr, container[attr]))
-                container[attr] = value.detach() if detach and value is not None else value
+            for store in stores:
+                for name, value in (store.items() if type(store) is dict else store):
+                    container, attr = slots[name]
+                    saved.append((container, attr, container[attr]))
+                    container[attr] = value.detach() if detach and value is not None else value
             return self.module(*[inputs[key] for key in self.in_keys])
         finally:
             for container, attr, old in saved:

@@ -685,20 +685,33 @@ class WeightedBellmanLoss(LossModule):
         calls = self.__dict__.get("_q_bound_calls", 0) + 1
         self.__dict__["_q_bound_calls"] = calls
         bound_given = getattr(self, "reward_bound", None)
+        on_host = q_value.device.type == "cpu"
         if bound_given is None:
             reward = fast_get(tensordict, _next(self.tensor_keys.reward))
-            peak = reward.detach().abs().amax().to(torch.float64)
+            peak = reward.detach().abs().amax()
             seen = self.__dict__.get("_max_abs_reward")
-            self.__dict__["_max_abs_reward"] = peak if seen is None else torch.maximum(seen.to(peak.device), peak)
+            if on_host and reward.device.type == "cpu" and not isinstance(seen, torch.Tensor):
+                # a host float: one read per batch, no device to wait for (the rewards were checked finite)
+                peak = peak.item()
+                self.__dict__["_max_abs_reward"] = peak if seen is None else max(seen, peak)
+            else:  # kept on the device, read with Q's max every 100th call
+                peak = peak.to(torch.float64)
+                seen = peak if seen is None else torch.maximum(torch.as_tensor(seen, dtype=torch.float64,
+                                                                               device=peak.device), peak)
+                self.__dict__["_max_abs_reward"] = seen
             if calls < self.q_bound_min_batches:
                 return
-        if q_value.device.type != "cpu" and calls % 100:
+        if not on_host and calls % 100:
             return
-        gamma = float(self.value_estimator.gamma)
+        gamma = self._gamma_value()
         if not gamma < 1.0:
             return
         if bound_given is None:
-            q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64), self.__dict__["_max_abs_reward"]]).tolist()
+            r_max = self.__dict__["_max_abs_reward"]
+            if isinstance(r_max, torch.Tensor):
+                q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64), r_max.to(q_value.device)]).tolist()
+            else:
+                q_max = q_value.abs().amax().item()
             source = f"over the {calls} batches seen"
         else:
             q_max, r_max = float(q_value.abs().amax()), float(bound_given)
@@ -716,6 +729,16 @@ class WeightedBellmanLoss(LossModule):
                 UserWarning,
                 stacklevel=3,
             )
+
+    def _gamma_value(self) -> float:
+        """γ as a float, read from the value estimator once per γ tensor and version (read anew after
+        ``make_value_estimator``, the move to the batch's device in :meth:`_target` or an in-place change)."""
+        gamma = self.value_estimator.gamma
+        cached = self.__dict__.get("_gamma_float")
+        version = getattr(gamma, "_version", None)
+        if cached is None or cached[0] is not gamma or cached[1] != version:
+            cached = self.__dict__["_gamma_float"] = (gamma, version, float(gamma))
+        return cached[2]
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``−mean_i Q(x_i, μ(x_i))`` (Q frozen), optionally ŵ-weighted and with TD3+BC's cloning term.

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import signal
 import threading
 from pathlib import Path
@@ -113,7 +114,28 @@ class StopSignals:
 
 
 def first_non_finite(figures: dict) -> tuple[str, float] | None:
-    """The first ``(name, value)`` among scalar tensors/floats of ``figures`` that is NaN or ±inf (one host sync)."""
+    """The first ``(name, value)`` among scalar tensors/floats of ``figures`` that is NaN or ±inf.
+
+    CPU scalars are read one by one (``.item()``: no device to wait for, and cheaper than stacking them); where one
+    of them lives on an accelerator, they are all stacked and read in one host sync."""
+    read = []
+    for name, value in figures.items():
+        if isinstance(value, torch.Tensor):
+            if value.numel() != 1:
+                continue
+            if value.device.type != "cpu" or value.is_complex():
+                return _first_non_finite_stacked(figures)
+            read.append((name, value.item()))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            read.append((name, value))
+    for name, value in read:
+        if not math.isfinite(value):
+            return name, float(value)
+    return None
+
+
+def _first_non_finite_stacked(figures: dict) -> tuple[str, float] | None:
+    """:func:`first_non_finite` with every scalar stacked in float64 on the host and read in one sync."""
     names, values = [], []
     for name, value in figures.items():
         if isinstance(value, torch.Tensor):
