@@ -93,6 +93,10 @@ def step_schedulers(schedulers: dict) -> None:
     its optimiser yet at step 1: torch's warning about that order is expected and silenced)."""
     if not schedulers:
         return
+    if all(getattr(scheduler, "_step_count", 0) > 1 for scheduler in schedulers.values()):
+        for scheduler in schedulers.values():  # torch warns only on a schedule's first step: no filter to set up
+            scheduler.step()
+        return
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
         for scheduler in schedulers.values():
