@@ -1,6 +1,8 @@
 """wandb dashboards, read back from real offline runs with wandb's own reader (``wandb leet inspect``), no mocks.
 
-The recipe's run is the one of test_minari.py (memoised in minari_helpers: one run serves both files).
+The recipe's run on test_minari.py's Minari datasets (memoised in minari_helpers) serves both tests below that read it,
+in this one file, so that one worker of ``pytest -n 2 --dist loadfile`` runs it once: that it learns, and its
+dashboard.
 """
 from __future__ import annotations
 
@@ -18,6 +20,24 @@ def _records(run: Path) -> list[dict]:
 
 def _run_record(records: list[dict]) -> dict:
     return next(r["run"] for r in records if r.get("type") == "run")
+
+
+@pytest.mark.slow
+def test_recipe_learns_on_minari_datasets():
+    """The recipe on the Minari datasets beats the behaviour data's mean return by a margin (seed 0)."""
+    run_dir, stdout, stderr, results = minari_wandb_run()
+    final, data = results["final"], results["data"]
+    assert results["status"] == "finished" and results["env"] == "minari"
+    behaviour, expert = data["behaviour_mean_return"], data["expert_mean_return"]
+    assert behaviour < expert
+    # measured (seed 0): see the README's "Your own data: Minari"
+    assert final["return"] - final["return_ci"] > behaviour + 10.0, (final, data)
+    assert final["data_behaviour_mean_return"] == pytest.approx(behaviour)
+    assert "datasets' mean episode returns: behaviour" in stdout and "over the evaluation episodes" in stdout
+    # D and S^b come from the behaviour dataset, split by episode; S^e is the expert dataset
+    assert data["transitions"] + data["behaviour_samples"] > data["expert_samples"] > 0
+    # console: torchrl's storage INFO lines are silenced by default
+    assert "[INFO]" not in stdout + stderr
 
 
 @pytest.mark.slow
