@@ -1,17 +1,23 @@
 """The locally made benchmark (``torchrl_wbrm.data.benchmark``): one call writes a task's expert and behaviour Minari
-datasets with their reference scores, the same seed gives the same data, an existing id is refused before any
-collecting, and a run on them reports D4RL's normalised score and flags a policy worse than its data."""
+datasets with their reference scores, and the few-demonstration sets (the expert pool, the behaviour sets with 5%,
+10% and 20% expert episodes, the medium set); the same seed gives the same data, an existing id is refused before any
+collecting, a run draws its few expert episodes from the pool by its seed, and a run on them reports D4RL's
+normalised score and flags a policy worse than its data."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
+import torch
 
 from torchrl_wbrm.data.benchmark import (
     BENCHMARK_TASKS,
     EXPERT_EVERY,
+    EXPERT_SHARES,
     benchmark_table,
+    expert_episode_indices,
+    few_demonstration_ids,
     make_benchmark,
     make_benchmark_task,
     normalised_score,
@@ -36,8 +42,17 @@ def test_the_tasks_differ_in_horizon_reward_and_termination():
 @pytest.fixture(scope="module")
 def pendulum(tmp_path_factory):
     path = tmp_path_factory.mktemp("bench")
-    row = make_benchmark_task("pendulum", path, expert_episodes=3, behaviour_episodes=10, reference_episodes=4)
+    row = make_benchmark_task("pendulum", path, expert_episodes=3, behaviour_episodes=20, reference_episodes=4)
     return path, row
+
+
+def _load(path, dataset_id):
+    import minari
+
+    from torchrl_wbrm.data.minari_data import _minari_path, minari_data_root
+
+    with _minari_path(minari_data_root(path)):
+        return minari.load_dataset(dataset_id)
 
 
 def test_a_task_writes_both_datasets_with_reference_scores(pendulum):
@@ -49,7 +64,7 @@ def test_a_task_writes_both_datasets_with_reference_scores(pendulum):
     assert row["expert"] == "benchmark/pendulum/expert-v0" and row["behaviour"] == "benchmark/pendulum/behaviour-v0"
     with _minari_path(minari_data_root(path)):
         expert, behaviour = minari.load_dataset(row["expert"]), minari.load_dataset(row["behaviour"])
-    assert expert.total_episodes == 3 and behaviour.total_episodes == 10
+    assert expert.total_episodes == 3 and behaviour.total_episodes == 20
     for ds in (expert, behaviour):
         assert ds.storage.metadata["ref_min_score"] == pytest.approx(row["ref_min_score"])
         assert ds.storage.metadata["ref_max_score"] == pytest.approx(row["ref_max_score"])
@@ -63,10 +78,24 @@ def test_a_task_writes_both_datasets_with_reference_scores(pendulum):
 
 
 def test_same_seed_same_data_and_existing_ids_are_refused_first(pendulum, tmp_path, monkeypatch):
+    """The same seed writes the same files, and expert-v0 / behaviour-v0 do not depend on the few-demonstration sets
+    (written here without them: the same bytes)."""
+    import hashlib
+
+    from torchrl_wbrm.data.minari_data import minari_data_root
+
     path, row = pendulum
-    again = make_benchmark_task("pendulum", tmp_path, expert_episodes=3, behaviour_episodes=10, reference_episodes=4)
+    again = make_benchmark_task("pendulum", tmp_path, expert_episodes=3, behaviour_episodes=20, reference_episodes=4,
+                                few_demonstrations=False)
     for key in ("ref_min_score", "ref_max_score", "behaviour_return_mean", "expert_return_mean"):
         assert again[key] == row[key], key
+    assert "expert_pool" not in again and [d["id"] for d in again["datasets"]] == [row["expert"], row["behaviour"]]
+
+    def digest(root, dataset_id):
+        return hashlib.sha256((minari_data_root(root) / dataset_id / "data" / "main_data.hdf5").read_bytes()).digest()
+
+    for kind in ("expert", "behaviour"):
+        assert digest(tmp_path, row[kind]) == digest(path, row[kind]), kind
     import torchrl_wbrm.data.benchmark as benchmark
 
     def no_collecting(*args, **kwargs):
@@ -75,8 +104,83 @@ def test_same_seed_same_data_and_existing_ids_are_refused_first(pendulum, tmp_pa
     monkeypatch.setattr(benchmark, "collect_gym_episodes", no_collecting)
     with pytest.raises(FileExistsError, match="benchmark/pendulum/expert-v0.*--overwrite"):
         make_benchmark_task("pendulum", tmp_path, expert_episodes=3, behaviour_episodes=10)
+    (minari_data_root(tmp_path / "pool_only") / few_demonstration_ids("pendulum")["expert_pool"]).mkdir(parents=True)
+    with pytest.raises(FileExistsError, match="benchmark/pendulum/expert-pool-v0.*--overwrite"):
+        make_benchmark_task("pendulum", tmp_path / "pool_only", expert_episodes=3, behaviour_episodes=10)
     with pytest.raises(ValueError, match="Unknown benchmark task 'hopper'"):
         make_benchmark(tmp_path, tasks=["hopper"])
+
+
+def test_the_few_demonstration_sets_exist_with_their_expert_share(pendulum):
+    """The pool holds twice the expert dataset's episodes, all the expert's; behaviour-expert<pp>-v0 holds pp% expert
+    episodes (the ones expert_episode_indices names, whose returns beat every random one's), the rest random; in
+    medium-v0 about half the steps are the expert's; the make-up is in the row and the table."""
+    path, row = pendulum
+    ids = few_demonstration_ids("pendulum")
+    assert ids == {"expert_pool": "benchmark/pendulum/expert-pool-v0",
+                   "behaviour_expert05": "benchmark/pendulum/behaviour-expert05-v0",
+                   "behaviour_expert10": "benchmark/pendulum/behaviour-expert10-v0",
+                   "behaviour_expert20": "benchmark/pendulum/behaviour-expert20-v0",
+                   "medium": "benchmark/pendulum/medium-v0"}
+    made = {d["id"]: d for d in row["datasets"]}
+    assert set(made) == {row["expert"], row["behaviour"], *ids.values()}
+    pool = _load(path, ids["expert_pool"])
+    assert pool.total_episodes == 6 and made[ids["expert_pool"]]["expert_episodes"] == 6
+    assert min(float(ep.rewards.sum()) for ep in pool.iterate_episodes()) > row["random_return_mean"]
+    for name, share in EXPERT_SHARES.items():
+        dataset_id = f"benchmark/pendulum/{name}"
+        ds = _load(path, dataset_id)
+        assert ds.total_episodes == 20
+        chosen = expert_episode_indices(20, share)
+        assert len(chosen) == made[dataset_id]["expert_episodes"] == round(share * 20)
+        assert made[dataset_id]["expert_transitions"] == 200 * len(chosen)
+        returns = [float(ep.rewards.sum()) for ep in ds.iterate_episodes()]
+        assert min(returns[i] for i in chosen) > max(r for i, r in enumerate(returns) if i not in chosen), name
+    assert expert_episode_indices(300, 0.05) == list(range(19, 300, 20))
+    assert expert_episode_indices(300, 0.20) == [i for i in range(300) if i % EXPERT_EVERY == EXPERT_EVERY - 1]
+    medium = made[ids["medium"]]
+    assert medium["episodes"] == 20 and medium["expert_episodes"] is None
+    assert 0.4 < medium["expert_transitions"] / medium["transitions"] < 0.6
+    assert row["random_return_mean"] < medium["return_mean"]
+    table = benchmark_table([row])
+    assert "| benchmark/pendulum/behaviour-expert10-v0 | 20 | 2 | 4,000 | 400 (10%) |" in table
+
+
+def test_a_run_draws_its_few_expert_episodes_by_its_seed(pendulum):
+    """env.minari.expert_episodes=2: S^e is two of the pool's six episodes, the same two for one seed, others for
+    other seeds; more than the pool holds is refused in one line naming the key and the count."""
+    from torchrl_wbrm.data.minari_data import MinariDataConfig, check_minari_data, make_minari_datasets
+    from torchrl_wbrm.data.tasks import MinariTask
+
+    path, row = pendulum
+    config = MinariDataConfig(expert=row["expert_pool"], behaviour=row["behaviour_expert10"], data_path=str(path),
+                              expert_episodes=2)
+    check_minari_data(config)
+
+    def drawn(seed):
+        datasets = make_minari_datasets(config, seed=seed)
+        ids = datasets.metadata["expert_episode_ids"]
+        assert torch.unique(datasets.expert_samples[:]["episode"]).tolist() == ids
+        assert datasets.sizes()["expert_samples"] == 400 and datasets.metadata["expert_dataset_episodes"] == 6
+        return ids
+
+    draws = {seed: drawn(seed) for seed in range(5)}
+    assert all(len(ids) == 2 for ids in draws.values())
+    assert drawn(3) == draws[3]
+    assert len({tuple(ids) for ids in draws.values()}) > 1
+    config.expert_episodes = None  # all of them
+    assert make_minari_datasets(config, seed=0).sizes()["expert_samples"] == 6 * 200
+    config.expert_episodes = 7
+    with pytest.raises(ValueError, match=r"env.minari.expert_episodes=7 but the Minari expert dataset "
+                                         r"'benchmark/pendulum/expert-pool-v0' holds 6 episode\(s\)"):
+        check_minari_data(config)
+    with pytest.raises(ValueError, match=r"env.minari.expert_episodes=7 .* holds 6"):
+        make_minari_datasets(config, seed=0)
+    from torchrl_wbrm.data import EnvConfig
+
+    config.expert_episodes = 0
+    with pytest.raises(ValueError, match="env.minari.expert_episodes must be >= 1"):
+        MinariTask(EnvConfig(name="minari", kind="minari", minari=config)).validate()
 
 
 @pytest.mark.slow

@@ -8,6 +8,12 @@ task is built the same way:
   ``0.05 × (high − low)`` (5% of the action range), clipped to the action box;
 * **behaviour** (``<namespace>/<task>/behaviour-v0``): whole episodes of uniform random actions, with every fifth
   episode the expert's (the same noisy controller, other reset seeds);
+* **the few-demonstration axis**: an expert *pool* (``expert-pool-v0``, twice the expert dataset's episodes, fresh
+  reset seeds) from which a run draws its few expert episodes by its own seed (``env.minari.expert_episodes``, see
+  :class:`~torchrl_wbrm.data.minari_data.MinariDataConfig`), and behaviour sets of the behaviour dataset's size in
+  which 5%, 10% and 20% of the episodes are the expert's and the rest uniform random (``behaviour-expert05-v0``,
+  ``behaviour-expert10-v0``, ``behaviour-expert20-v0``; :func:`expert_episode_indices` says which), plus
+  ``medium-v0``, where every step takes the expert's action with probability ½ and a uniform random one otherwise;
 * **reference scores** (Minari's ``ref_min_score`` / ``ref_max_score``, as D4RL defines them): the mean return of
   uniform random actions and of the noisy expert over ``reference_episodes`` fresh episodes. A return ``R`` scores
   ``100 (R − ref_min) / (ref_max − ref_min)``: 0 is random actions, 100 the expert
@@ -32,6 +38,13 @@ One command writes every dataset (tasks whose simulator is missing are refused b
     python -m torchrl_wbrm.data.benchmark --data-path datasets/benchmark
     python recipes/wbrm_offline.py env=minari env.minari.data_path=datasets/benchmark \\
         env.minari.expert=benchmark/pendulum/expert-v0 env.minari.behaviour=benchmark/pendulum/behaviour-v0
+
+A few-demonstration run: three expert episodes drawn from the pool by the run's seed, and the behaviour set that
+hides 10% expert episodes among random ones::
+
+    python recipes/wbrm_offline.py env=minari env.minari.data_path=datasets/benchmark \\
+        env.minari.expert=benchmark/pendulum/expert-pool-v0 env.minari.expert_episodes=3 \\
+        env.minari.behaviour=benchmark/pendulum/behaviour-expert10-v0
 """
 from __future__ import annotations
 
@@ -54,7 +67,12 @@ from torchrl_wbrm.policies.gym_experts import (
 __all__ = [
     "BENCHMARK_TASKS",
     "BenchmarkTask",
+    "EXPERT_SHARES",
+    "MEDIUM_EXPERT_PROBABILITY",
     "benchmark_ids",
+    "benchmark_table",
+    "expert_episode_indices",
+    "few_demonstration_ids",
     "make_benchmark",
     "make_benchmark_task",
     "normalised_score",
@@ -103,6 +121,15 @@ BENCHMARK_TASKS: dict[str, BenchmarkTask] = {
 #: every fifth behaviour episode is the expert's
 EXPERT_EVERY = 5
 
+#: the few-demonstration behaviour sets: ``behaviour-expert<pp>-v0`` -> the share of its episodes that are the expert's
+EXPERT_SHARES = {"behaviour-expert05-v0": 0.05, "behaviour-expert10-v0": 0.10, "behaviour-expert20-v0": 0.20}
+
+#: ``medium-v0``: the probability that a step takes the expert's action (else a uniform random one)
+MEDIUM_EXPERT_PROBABILITY = 0.5
+
+#: the expert pool: this many times the expert dataset's episodes, from fresh reset seeds
+POOL_FACTOR = 2
+
 
 def normalised_score(returns, ref_min: float, ref_max: float):
     """D4RL's normalised score, ``100 (R − ref_min) / (ref_max − ref_min)``: 0 is random actions, 100 the expert."""
@@ -116,6 +143,33 @@ def benchmark_ids(name: str, namespace: str = NAMESPACE) -> dict[str, str]:
     return {kind: f"{namespace}/{name}/{kind}-v0" for kind in ("expert", "behaviour")}
 
 
+def few_demonstration_ids(name: str, namespace: str = NAMESPACE) -> dict[str, str]:
+    """The few-demonstration dataset ids of task ``name``: ``{"expert_pool": "<ns>/<name>/expert-pool-v0",
+    "behaviour_expert05": ..., "behaviour_expert10": ..., "behaviour_expert20": ..., "medium": ...}``."""
+    ids = {"expert_pool": f"{namespace}/{name}/expert-pool-v0"}
+    for dataset_name in EXPERT_SHARES:
+        ids[dataset_name[:-3].replace("-", "_")] = f"{namespace}/{name}/{dataset_name}"
+    ids["medium"] = f"{namespace}/{name}/medium-v0"
+    return ids
+
+
+def expert_episode_indices(episodes: int, share: float) -> list[int]:
+    """Which episodes of a ``behaviour-expert<pp>-v0`` set of ``episodes`` episodes are the expert's:
+    ``k = max(1, round(share × episodes))`` of them, evenly spread (episode ``⌊(j + 1) episodes / k⌋ − 1`` for
+    ``j < k``); the others are uniform random actions. With 300 episodes: every 20th, 10th and 5th episode for 5%,
+    10% and 20% (the 20% set then holds the episodes of ``behaviour-v0``).
+
+        >>> expert_episode_indices(20, 0.10)
+        [9, 19]
+        >>> expert_episode_indices(300, 0.05)[:3]
+        [19, 39, 59]
+    """
+    if episodes < 1 or not 0.0 < share <= 1.0:
+        raise ValueError(f"expert_episode_indices needs episodes >= 1 and 0 < share <= 1, got {episodes}, {share}.")
+    k = min(episodes, max(1, round(share * episodes)))
+    return [(j + 1) * episodes // k - 1 for j in range(k)]
+
+
 def _policies(task: BenchmarkTask, space):
     low, high = np.asarray(space.low, dtype=np.float32), np.asarray(space.high, dtype=np.float32)
     std = 0.05 * (high - low)
@@ -127,6 +181,23 @@ def _policies(task: BenchmarkTask, space):
         return rng.uniform(low, high).astype(np.float32)
 
     return expert, uniform
+
+
+def _medium(expert, uniform, counter: list):
+    """The expert's action with probability :data:`MEDIUM_EXPERT_PROBABILITY`, else a uniform one; ``counter[0]``
+    counts the expert's steps."""
+
+    def policy(obs, rng):
+        if rng.random() < MEDIUM_EXPERT_PROBABILITY:
+            counter[0] += 1
+            return expert(obs, rng)
+        return uniform(obs, rng)
+
+    return policy
+
+
+def _steps(episodes: list[dict]) -> int:
+    return int(sum(len(ep["rewards"]) for ep in episodes))
 
 
 def _returns(episodes: list[dict]) -> np.ndarray:
@@ -149,21 +220,29 @@ def _check_simulator(task: BenchmarkTask) -> None:
 def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike, *, seed: int = 0,
                         reference_episodes: int = 100, namespace: str = NAMESPACE,
                         expert_episodes: int | None = None, behaviour_episodes: int | None = None,
+                        pool_episodes: int | None = None, few_demonstrations: bool = True,
                         overwrite: bool = False) -> dict:
-    """Write one task's expert and behaviour datasets under ``data_path``; returns the ids, paths and the returns
-    (random, behaviour, expert, and the reference scores).
+    """Write one task's datasets under ``data_path``; returns the ids, paths, the returns (random, behaviour,
+    expert, and the reference scores) and, under ``"datasets"``, each dataset's make-up (:func:`benchmark_table`).
 
     Episode ``i`` of each collection is reset with its own seed (expert ``seed + i``, behaviour
     ``seed + 10_000 + i``, the references ``seed + 20_000 + i`` and ``seed + 30_000 + i``), so the same seed gives
-    the same datasets. An existing dataset id is refused before anything is collected unless ``overwrite``.
+    the same datasets. With ``few_demonstrations`` (the default) the few-demonstration sets are written too
+    (:func:`few_demonstration_ids`): the expert pool of ``pool_episodes`` episodes (default :data:`POOL_FACTOR`
+    times the expert dataset's) reset with ``seed + 40_000 + i``, and the ``behaviour-expert<pp>-v0`` and
+    ``medium-v0`` sets of the behaviour dataset's size, whose episode ``i`` is reset with ``seed + 10_000 + i``
+    as the behaviour dataset's (an expert or a uniform episode of one reset seed is the same episode in every set).
+    ``expert-v0`` and ``behaviour-v0`` do not depend on them. An existing dataset id is refused before anything is
+    collected unless ``overwrite``.
     """
     import gymnasium as gym
 
     task = BENCHMARK_TASKS[task] if isinstance(task, str) else task
     _check_simulator(task)
     ids = benchmark_ids(task.name, namespace)
+    extra_ids = few_demonstration_ids(task.name, namespace) if few_demonstrations else {}
     root = minari_data_root(data_path)
-    for kind, dataset_id in ids.items():
+    for kind, dataset_id in {**ids, **extra_ids}.items():
         path = root / dataset_id
         if path.exists():
             if not overwrite:
@@ -177,15 +256,23 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
     env.close()
     n_expert = task.expert_episodes if expert_episodes is None else int(expert_episodes)
     n_behaviour = task.behaviour_episodes if behaviour_episodes is None else int(behaviour_episodes)
-    if n_expert < 1 or n_behaviour < EXPERT_EVERY:
-        raise ValueError(f"make_benchmark_task: expert_episodes must be >= 1 and behaviour_episodes >= "
-                         f"{EXPERT_EVERY}, got {n_expert} and {n_behaviour}.")
+    n_pool = POOL_FACTOR * n_expert if pool_episodes is None else int(pool_episodes)
+    if n_expert < 1 or n_behaviour < EXPERT_EVERY or n_pool < 1:
+        raise ValueError(f"make_benchmark_task: expert_episodes and pool_episodes must be >= 1 and "
+                         f"behaviour_episodes >= {EXPERT_EVERY}, got {n_expert}, {n_pool} and {n_behaviour}.")
+
+    cache: dict[tuple[str, int], dict] = {}  # (policy, episode index) -> the episode, shared by the behaviour sets
+
+    def behaviour_episode(kind: str, i: int) -> dict:
+        if (kind, i) not in cache:
+            policy = expert if kind == "expert" else uniform
+            cache[kind, i] = collect_gym_episodes(task.env_id, policy, 1, seed=seed + 10_000 + i)[0]
+        return cache[kind, i]
 
     expert_data = collect_gym_episodes(task.env_id, expert, n_expert, seed=seed)
-    behaviour = []
-    for i in range(n_behaviour):  # one episode at a time: every fifth the expert's, the rest uniform random
-        policy = expert if i % EXPERT_EVERY == EXPERT_EVERY - 1 else uniform
-        behaviour += collect_gym_episodes(task.env_id, policy, 1, seed=seed + 10_000 + i)
+    # one episode at a time: every fifth the expert's, the rest uniform random
+    behaviour_kinds = ["expert" if i % EXPERT_EVERY == EXPERT_EVERY - 1 else "uniform" for i in range(n_behaviour)]
+    behaviour = [behaviour_episode(kind, i) for i, kind in enumerate(behaviour_kinds)]
     random_ref = collect_gym_episodes(task.env_id, uniform, reference_episodes, seed=seed + 20_000)
     expert_ref = collect_gym_episodes(task.env_id, expert, reference_episodes, seed=seed + 30_000)
     ref_min, ref_max = float(_returns(random_ref).mean()), float(_returns(expert_ref).mean())
@@ -199,17 +286,60 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
         ids["behaviour"], behaviour,
         algorithm_name=f"uniform random actions; every {EXPERT_EVERY}th episode the expert ({noise})",
         description=f"torchrl_wbrm benchmark: {task.env_id} behaviour, {n_behaviour} episodes", **common)
+
+    def make_up(dataset_id, episodes, expert_eps, expert_steps):
+        returns = _returns(episodes)
+        return {"id": dataset_id, "episodes": len(episodes), "transitions": _steps(episodes),
+                "expert_episodes": expert_eps, "expert_transitions": expert_steps,
+                "return_mean": float(returns.mean()), "return_std": float(returns.std())}
+
+    n_expert_behaviour = behaviour_kinds.count("expert")
+    datasets = [
+        make_up(ids["expert"], expert_data, n_expert, _steps(expert_data)),
+        make_up(ids["behaviour"], behaviour, n_expert_behaviour,
+                _steps([ep for ep, kind in zip(behaviour, behaviour_kinds) if kind == "expert"])),
+    ]
+    if few_demonstrations:
+        pool = collect_gym_episodes(task.env_id, expert, n_pool, seed=seed + 40_000)
+        write_minari_dataset(
+            extra_ids["expert_pool"], pool, algorithm_name=f"{task.expert_description}; {noise}",
+            description=f"torchrl_wbrm benchmark: {task.env_id} expert pool, {n_pool} episodes (draw a few with "
+                        f"env.minari.expert_episodes)", **common)
+        datasets.append(make_up(extra_ids["expert_pool"], pool, n_pool, _steps(pool)))
+        for dataset_name, share in EXPERT_SHARES.items():
+            chosen = set(expert_episode_indices(n_behaviour, share))
+            episodes = [behaviour_episode("expert" if i in chosen else "uniform", i) for i in range(n_behaviour)]
+            dataset_id = extra_ids[dataset_name[:-3].replace("-", "_")]
+            write_minari_dataset(
+                dataset_id, episodes,
+                algorithm_name=f"uniform random actions; {len(chosen)} of {n_behaviour} episodes the expert "
+                               f"({noise}), evenly spread",
+                description=f"torchrl_wbrm benchmark: {task.env_id} behaviour, {n_behaviour} episodes, "
+                            f"{100 * share:.0f}% of them the expert's", **common)
+            datasets.append(make_up(dataset_id, episodes, len(chosen),
+                                    _steps([episodes[i] for i in sorted(chosen)])))
+        counter = [0]
+        medium = [collect_gym_episodes(task.env_id, _medium(expert, uniform, counter), 1, seed=seed + 10_000 + i)[0]
+                  for i in range(n_behaviour)]
+        write_minari_dataset(
+            extra_ids["medium"], medium,
+            algorithm_name=f"every step the expert ({noise}) with probability {MEDIUM_EXPERT_PROBABILITY}, else "
+                           f"uniform random actions",
+            description=f"torchrl_wbrm benchmark: {task.env_id} medium, {n_behaviour} episodes", **common)
+        datasets.append(make_up(extra_ids["medium"], medium, None, counter[0]))
+
     returns = {"random": _returns(random_ref), "behaviour": _returns(behaviour), "expert": _returns(expert_data)}
     return {
-        "task": task.name, "env_id": task.env_id, **ids,
-        **{f"{kind}_path": str(root / dataset_id) for kind, dataset_id in ids.items()},
+        "task": task.name, "env_id": task.env_id, **ids, **extra_ids,
+        **{f"{kind}_path": str(root / dataset_id) for kind, dataset_id in {**ids, **extra_ids}.items()},
         "ref_min_score": ref_min, "ref_max_score": ref_max,
         **{f"{k}_return_mean": float(v.mean()) for k, v in returns.items()},
         **{f"{k}_return_std": float(v.std()) for k, v in returns.items()},
-        "expert_transitions": int(sum(len(ep["rewards"]) for ep in expert_data)),
-        "behaviour_transitions": int(sum(len(ep["rewards"]) for ep in behaviour)),
+        "expert_transitions": _steps(expert_data),
+        "behaviour_transitions": _steps(behaviour),
         "expert_episodes": n_expert, "behaviour_episodes": n_behaviour,
         "behaviour_normalised": float(normalised_score(returns["behaviour"].mean(), ref_min, ref_max)),
+        "datasets": datasets,
     }
 
 
@@ -224,8 +354,10 @@ def make_benchmark(data_path: str | os.PathLike, *, tasks=None, seed: int = 0, *
 
 
 def benchmark_table(rows: list[dict]) -> str:
-    """The benchmark's datasets as a Markdown table: returns of random actions, the behaviour data and the expert
-    (mean ± std over episodes), the behaviour's normalised score and the sizes."""
+    """The benchmark's datasets as Markdown: a table of the returns of random actions, the behaviour data and the
+    expert (mean ± std over episodes), the behaviour's normalised score and the sizes; then, for rows that record
+    it (``"datasets"``), each dataset's make-up: episodes, transitions, how many of them the expert's (for
+    ``medium-v0``, the steps that took the expert's action) and the mean return ± std over its episodes."""
     lines = ["| task | env | random actions | behaviour data | expert data | behaviour, normalised | "
              "transitions (expert / behaviour) |", "|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -234,6 +366,17 @@ def benchmark_table(rows: list[dict]) -> str:
             f"{r['behaviour_return_mean']:.1f} ± {r['behaviour_return_std']:.1f} | "
             f"{r['expert_return_mean']:.1f} ± {r['expert_return_std']:.1f} | {r['behaviour_normalised']:.1f} | "
             f"{r['expert_transitions']:,} / {r['behaviour_transitions']:,} |")
+    made_up = [r for r in rows if r.get("datasets")]
+    if made_up:
+        lines += ["", "| dataset | episodes | expert episodes | transitions | expert transitions | return |",
+                  "|---|---|---|---|---|---|"]
+        for r in made_up:
+            for d in r["datasets"]:
+                episodes = "—" if d["expert_episodes"] is None else f"{d['expert_episodes']:,}"
+                share = d["expert_transitions"] / d["transitions"] if d["transitions"] else 0.0
+                lines.append(f"| {d['id']} | {d['episodes']:,} | {episodes} | {d['transitions']:,} | "
+                             f"{d['expert_transitions']:,} ({100 * share:.0f}%) | "
+                             f"{d['return_mean']:.1f} ± {d['return_std']:.1f} |")
     return "\n".join(lines)
 
 
@@ -245,13 +388,21 @@ def main(argv=None) -> None:
     parser.add_argument("--reference-episodes", type=int, default=100)
     parser.add_argument("--namespace", default=NAMESPACE)
     parser.add_argument("--overwrite", action="store_true", help="replace datasets that already exist")
+    parser.add_argument("--no-few-demonstrations", dest="few_demonstrations", action="store_false",
+                        help="write only expert-v0 and behaviour-v0 (not the expert pool, the behaviour-expert<pp>-v0 "
+                             "sets and medium-v0)")
     args = parser.parse_args(argv)
     rows = make_benchmark(args.data_path, tasks=args.tasks, seed=args.seed, overwrite=args.overwrite,
-                          reference_episodes=args.reference_episodes, namespace=args.namespace)
+                          reference_episodes=args.reference_episodes, namespace=args.namespace,
+                          few_demonstrations=args.few_demonstrations)
     print(benchmark_table(rows))
     for r in rows:
         print(f"{r['task']}: env.minari.data_path={args.data_path} env.minari.expert={r['expert']} "
               f"env.minari.behaviour={r['behaviour']}")
+        if args.few_demonstrations:
+            print(f"{r['task']}, few demonstrations: env.minari.data_path={args.data_path} "
+                  f"env.minari.expert={r['expert_pool']} env.minari.expert_episodes=3 "
+                  f"env.minari.behaviour={r['behaviour_expert10']}")
 
 
 if __name__ == "__main__":

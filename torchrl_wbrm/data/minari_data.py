@@ -6,7 +6,8 @@ observation and action spaces and, when the data came from a registered gymnasiu
 
 :func:`make_minari_datasets` reads two such datasets, an *expert* one and a *behaviour* one:
 
-* ``S^e`` is every state-action of the expert dataset;
+* ``S^e`` is every state-action of the expert dataset, or of ``expert_episodes`` of its episodes drawn by the run's
+  seed (:func:`draw_expert_episodes`: each seed draws its own few demonstrations);
 * the behaviour dataset is split *by episode* into ``D`` (transitions for Q) and ``S^b`` (state-actions for the
   ratio), as for the project's own data (:meth:`OfflineDatasets.from_behaviour_and_expert`).
 
@@ -54,6 +55,7 @@ from torchrl_wbrm.data.datasets import HeldRead, OfflineDatasets, episode_return
 
 __all__ = [
     "MinariDataConfig",
+    "draw_expert_episodes",
     "make_minari_datasets",
     "check_minari_data",
     "make_minari_eval_env",
@@ -79,6 +81,9 @@ class MinariDataConfig:
             collected on, as recorded in the expert dataset).
         ratio_fraction: share of the behaviour episodes that go to ``S^b``.
         data_path: where ids are looked up (``None``: ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``).
+        expert_episodes: how many of the expert dataset's episodes make ``S^e`` (``None``: all), drawn without
+            replacement by the run's seed (:func:`draw_expert_episodes`), so each seed of a multi-seed run draws its
+            own; more than the dataset holds is refused naming the key and the count.
     """
 
     expert: str = ""
@@ -86,6 +91,7 @@ class MinariDataConfig:
     eval_env: Optional[str] = None
     ratio_fraction: float = 0.5
     data_path: Optional[str] = None
+    expert_episodes: Optional[int] = None
 
 
 def minari_data_root(data_path: str | os.PathLike | None = None) -> Path:
@@ -336,6 +342,37 @@ def _read_pair(data: MinariDataConfig) -> tuple[tuple, tuple]:
     return key, pair
 
 
+def _check_expert_episodes(data: MinariDataConfig, expert: TensorDictBase) -> None:
+    """Refuse ``env.minari.expert_episodes`` below 1 or above the expert dataset's episode count, in one line."""
+    wanted = data.expert_episodes
+    if wanted is None:
+        return
+    held = int(torch.unique(expert["episode"]).numel())
+    if not 1 <= int(wanted) <= held:
+        raise ValueError(f"env.minari.expert_episodes={wanted} but the Minari expert dataset {data.expert!r} holds "
+                         f"{held} episode(s) with steps: ask for 1 to {held}, or null for all.")
+
+
+def draw_expert_episodes(expert: TensorDictBase, count: int | None, *, seed: int) -> TensorDictBase:
+    """The rows of ``count`` of ``expert``'s episodes (its ``"episode"`` ids), drawn without replacement by ``seed``
+    (a ``torch.Generator`` seeded ``seed + 5``); ``None``: every row. The rows keep their order; the same seed draws
+    the same episodes.
+
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"episode": torch.tensor([0, 0, 1, 1, 2, 2])}, [6])
+        >>> draw_expert_episodes(td, 2, seed=0)["episode"].unique().numel()
+        2
+    """
+    if count is None:
+        return expert
+    ids = torch.unique(expert["episode"])
+    if not 1 <= int(count) <= ids.numel():
+        raise ValueError(f"draw_expert_episodes: count must lie in [1, {ids.numel()}] (the episodes held), got {count}.")
+    generator = torch.Generator().manual_seed(int(seed) + 5)
+    chosen = ids[torch.randperm(ids.numel(), generator=generator)[: int(count)]]
+    return expert[torch.isin(expert["episode"], chosen)]
+
+
 def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
     """Everything that can refuse the Minari datasets ``data``, read and checked: both are given and on disk, have
     supported and equal observation and action spaces, come from the same env (where both record one), hold steps,
@@ -348,6 +385,7 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
     a run checks its data before it writes anything, and its trainer then reads them once only.
     """
     key, pair = _read_pair(data)
+    _check_expert_episodes(data, pair[2])
     behaviour = pair[3]
     episodes = int(torch.unique(behaviour["episode"]).numel())
     needed = min_behaviour_episodes(data.ratio_fraction)
@@ -369,7 +407,8 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
 
 def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str = "lazy",
                          scratch_dir=None) -> OfflineDatasets:
-    """``S^e`` from ``data.expert``; ``D`` and ``S^b`` from ``data.behaviour`` split by episode (seeded by ``seed``).
+    """``S^e`` from ``data.expert`` (``data.expert_episodes`` of its episodes, drawn by ``seed``: all when ``None``);
+    ``D`` and ``S^b`` from ``data.behaviour`` split by episode (seeded by ``seed``).
 
     The datasets are checked as they are read (:func:`check_minari_data`): bad data are refused, never trained on.
 
@@ -380,6 +419,9 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
     from gymnasium import spaces
 
     _, (expert_ds, behaviour_ds, expert, behaviour) = _read_pair(data)
+    _check_expert_episodes(data, expert)
+    expert_pool_episodes = int(torch.unique(expert["episode"]).numel())
+    expert = draw_expert_episodes(expert, data.expert_episodes, seed=seed)
     action_space = expert_ds.action_space
     if isinstance(action_space, spaces.Discrete):
         low, high, discrete = [0.0] * int(action_space.n), [1.0] * int(action_space.n), int(action_space.n)
@@ -411,6 +453,10 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         "expert_mean_return": _mean_return(expert),
         "behaviour_episodes": int(torch.unique(behaviour["episode"]).numel()),
         "expert_episodes": int(torch.unique(expert["episode"]).numel()),
+        # env.minari.expert_episodes: the episodes drawn from the expert dataset's (by the seed), else all of them
+        "expert_dataset_episodes": expert_pool_episodes,
+        "expert_episode_ids": (None if data.expert_episodes is None
+                               else sorted(int(i) for i in torch.unique(expert["episode"]))),
         # Minari's reference scores (random actions, the expert), where the dataset records them: D4RL's normalised
         # score of the evaluated returns
         "ref_min_score": _reference_score(expert_ds, behaviour_ds, "ref_min_score"),

@@ -20,7 +20,8 @@ __all__ = ["MinariEvaluator", "MinariTask"]
 
 
 class MinariTask(Task):
-    """``env.kind=minari``: the datasets of ``env.minari`` (read from disk, never downloaded, not cached again); the
+    """``env.kind=minari``: the datasets of ``env.minari`` (read from disk, never downloaded, not cached again;
+    ``env.minari.expert_episodes`` of the expert dataset's episodes drawn by the run's seed, else all); the
     action box is the datasets' (a ``Discrete`` action: its one-hot [0, 1]^n); γ 0.99 unless ``q.gamma``."""
 
     kind = "minari"
@@ -29,6 +30,12 @@ class MinariTask(Task):
     def __init__(self, env) -> None:
         super().__init__(env)
         self.data_config: MinariDataConfig = to_dataclass(MinariDataConfig, env.minari)
+
+    def validate(self) -> None:
+        wanted = self.data_config.expert_episodes
+        if wanted is not None and not (isinstance(wanted, int) and wanted >= 1):
+            raise ValueError(f"env.minari.expert_episodes must be >= 1 (the expert episodes drawn by the seed) or null "
+                             f"(all of them), got {wanted!r}.")
 
     def check_data(self) -> None:
         check_minari_data(self.data_config, keep=True)
