@@ -10,7 +10,8 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   TensorDict or a replay buffer's storage under ``"density_ratio"`` (for ``WeightedBellmanLoss``, and for any
   TorchRL loss wrapped in ``WeightedLoss``) or ``"priority_weight"`` (read natively only by the TorchRL losses of
   ``NATIVE_PRIORITY_WEIGHT_LOSSES``); in a replay buffer the weights follow their rows
-  (:class:`StoredWeightsFollowRows`).
+  (:class:`StoredWeightsFollowRows`). :func:`episode_weights` first gives each row its episode's weight, the
+  geometric mean of ŵ over the episode (``ratio.aggregate=episode``).
 """
 from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
 from torchrl_wbrm.ratio.storing import (
@@ -20,7 +21,7 @@ from torchrl_wbrm.ratio.storing import (
     compute_density_ratio,
     store_density_ratio,
 )
-from torchrl_wbrm.ratio.weights import shape_weights
+from torchrl_wbrm.ratio.weights import episode_weights, shape_weights
 
 __all__ = [
     "DensityRatioFit",
@@ -30,6 +31,7 @@ __all__ = [
     "StoredWeightsFollowRows",
     "as_tensordict",
     "compute_density_ratio",
+    "episode_weights",
     "fit_density_ratio",
     "holdout_split",
     "shape_weights",

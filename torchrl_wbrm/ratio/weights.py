@@ -3,7 +3,47 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["shape_weights"]
+__all__ = ["episode_weights", "shape_weights"]
+
+
+def episode_weights(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+    """Each row's weight replaced by its episode's: the geometric mean of ŵ over the episode's rows,
+    ``exp(mean_{t in episode} log ŵ_t)``, the same for every row of one episode (``ratio.aggregate=episode``).
+
+    A ratio fitted on a few expert episodes is large only on the states those episodes visited; an expert episode
+    hidden in the behaviour data visits them most of the time, a random one rarely, so the mean of ``log ŵ`` over a
+    whole episode ranks episodes by how expert-like they are, and its exponential carries that rank to every row,
+    the rows the few demonstrations never reached included. A zero weight in an episode makes its weight 0.
+
+    Args:
+        w: the weights, ``[N]`` or ``[N, 1]``, finite and non-negative.
+        episode: the rows' episode ids, ``[N]`` (or ``[N, 1]``), any integer labels; rows of one episode need not be
+            contiguous.
+
+    Returns:
+        The episode weights, with ``w``'s shape, dtype and device (computed in float64).
+
+    Examples:
+        >>> import torch
+        >>> w = torch.tensor([[1.0], [9.0], [2.0], [0.5], [8.0]])
+        >>> episode_weights(w, torch.tensor([0, 0, 7, 7, 7])).reshape(-1)  # sqrt(1·9); cbrt(2·0.5·8)
+        tensor([3., 3., 2., 2., 2.])
+    """
+    if w.shape[0] != episode.shape[0] or episode.reshape(episode.shape[0], -1).shape[1] != 1:
+        raise ValueError(f"episode_weights needs one episode id per row of w: w has shape {tuple(w.shape)}, the "
+                         f"episode ids {tuple(episode.shape)}.")
+    if w.reshape(w.shape[0], -1).shape[1] != 1:
+        raise ValueError(f"episode_weights needs one weight per row ([N] or [N, 1]), got shape {tuple(w.shape)}.")
+    if not torch.isfinite(w).all() or (w < 0).any():
+        raise ValueError("Weights must be finite and non-negative before they are aggregated by episode.")
+    if w.numel() == 0:
+        return w.clone()
+    _, index = torch.unique(episode.reshape(-1).to(w.device), return_inverse=True)
+    log_w = w.reshape(-1).double().log()  # log 0 = -inf: the episode's weight is then 0
+    count = torch.zeros(int(index.max()) + 1, dtype=torch.float64, device=w.device)
+    count.index_add_(0, index, torch.ones_like(log_w))
+    total = torch.zeros_like(count).index_add_(0, index, log_w)
+    return (total / count).exp()[index].reshape(w.shape).to(w.dtype)
 
 
 def shape_weights(

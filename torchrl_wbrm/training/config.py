@@ -64,6 +64,10 @@ class RatioConfig:
             with the lowest held-out Bellman residual.
         clip: upper clip of the stored weights (``None``: off).
         mix: ε in (1 − ε) ŵ + ε (0: off).
+        aggregate: the weight each transition of D gets from ŵ: ``"transition"`` (ŵ at its own state-action) or
+            ``"episode"`` (its episode's weight, the geometric mean of ŵ over the episode's transitions,
+            :func:`~torchrl_wbrm.ratio.weights.episode_weights`; needs D's episode ids); then tempered, clipped,
+            mixed and self-normalised as set above.
     """
 
     source: str = "learned"
@@ -89,6 +93,7 @@ class RatioConfig:
     temper: float = 0.25
     clip: Optional[float] = None
     mix: float = 0.0
+    aggregate: str = "transition"
 
 
 @dataclass
@@ -342,6 +347,7 @@ class MakeDatasetConfig:
 _CHOICES = {
     "ratio.source": ("learned", "exact", "none"),
     "ratio.divergence": ("basu", "kl"),
+    "ratio.aggregate": ("transition", "episode"),
     "q.residual": ("squared", "absolute_mean"),
     "q.bootstrap": ("target", "residual_gradient"),
     "q.maximiser": ("actor", "sampled"),

@@ -78,6 +78,8 @@ def not_vectorised(cfg: WBRMConfig) -> str | None:
         return f"q.maximiser={cfg.q.maximiser} is not vectorised over seeds (only the actor's max is)"
     if cfg.q.ensemble_size != 1:
         return "q.ensemble_size > 1 is not vectorised over seeds"
+    if cfg.q.weight_actor_loss:  # its ŵ check branches on the batch's values, which torch.vmap cannot trace
+        return "q.weight_actor_loss is not vectorised over seeds"
     if cfg.ratio.normalisation_coefficient > 0 and cfg.algo == "wbrm" and cfg.ratio.source == "learned":
         return "ratio.normalisation_coefficient > 0 is not vectorised over seeds"
     return None

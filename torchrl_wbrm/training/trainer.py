@@ -41,7 +41,8 @@ from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import q_value_bound
-from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, store_density_ratio
+from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
+                                store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour
@@ -430,6 +431,11 @@ class WBRMTrainer:
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
+        if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
+            if "episode" not in d.keys():
+                raise ValueError("ratio.aggregate='episode' needs D's episode ids (key 'episode'), which these data "
+                                 "do not hold: use ratio.aggregate=transition.")
+            w = episode_weights(w, d["episode"])
         try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
             w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
                                     self_normalise=rc.self_normalise and source != "none", keepdim=True,
