@@ -1,22 +1,39 @@
 """The Sphinx site in docs/ builds with warnings as errors, and its doctests pass (what CI runs); every results page
-includes its study's generated fragment, and every figure it shows exists."""
+includes its study's generated fragment, and every figure it shows exists.
+
+The two builds run ``python -m sphinx`` in the test process (:func:`tests.inprocess.run_script`: the package is
+imported already) and share one doctree directory: the doctest build reads the pages the html build has read, instead
+of reading and autodoc-importing every source again. Run alone, the doctest build reads them itself."""
 from __future__ import annotations
 
+import os
 import re
-import subprocess
 import sys
+import warnings
+from pathlib import Path
 
 import pytest
 
+from tests.inprocess import run_script
 from tests.references import ROOT
 
 DOCS = ROOT / "docs"
 
 
-def _sphinx(builder: str, out) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", builder, str(DOCS), str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600,
-                          env={**__import__("os").environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
+def _sphinx(builder: str, out, doctrees):
+    """``python -m sphinx -W --keep-going -q -b <builder> -d <doctrees> docs <out>``, in this process."""
+    import sphinx
+
+    path = list(sys.path)  # docs/conf.py puts the repository first on it
+    try:
+        with warnings.catch_warnings():  # as in its own python: no deprecation warnings of the libraries
+            warnings.simplefilter("ignore", DeprecationWarning)
+            warnings.simplefilter("ignore", PendingDeprecationWarning)
+            return run_script(Path(sphinx.__file__).parent / "__main__.py", "-W", "--keep-going", "-q", "-b", builder,
+                              "-d", doctrees, DOCS, out,
+                              env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
+    finally:
+        sys.path[:] = path
 
 
 @pytest.fixture(scope="module")
@@ -25,15 +42,21 @@ def sphinx():
     pytest.importorskip("myst_parser", reason="myst-parser is not installed: pip install -e '.[docs]'")
 
 
-def test_the_site_builds_without_warnings(sphinx, tmp_path):
-    result = _sphinx("html", tmp_path / "html")
+@pytest.fixture(scope="module")
+def doctrees(tmp_path_factory):
+    """The doctree directory both builds use."""
+    return tmp_path_factory.mktemp("doctrees")
+
+
+def test_the_site_builds_without_warnings(sphinx, doctrees, tmp_path):
+    result = _sphinx("html", tmp_path / "html", doctrees)
     assert result.returncode == 0, result.stderr[-4000:]
     assert (tmp_path / "html" / "index.html").is_file()
     assert (tmp_path / "html" / "method.html").is_file()
 
 
-def test_the_doctests_pass(sphinx, tmp_path):
-    result = _sphinx("doctest", tmp_path / "doctest")
+def test_the_doctests_pass(sphinx, doctrees, tmp_path):
+    result = _sphinx("doctest", tmp_path / "doctest", doctrees)
     assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-4000:]
     assert re.search(r"[1-9]\d* tests?", (tmp_path / "doctest" / "output.txt").read_text())
 
@@ -100,7 +123,7 @@ def test_no_project_history_in_the_readme_or_the_docs():
 
 
 def test_the_readmes_python_api_runs_as_written(tmp_path):
-    """The README's Python API block, run in a fresh directory, line for line but one: its step budget
+    """The README's Python API block, run in a fresh directory (in this process), line for line but one: its step budget
     (``cfg.q.steps = 3000``, the default) is cut so that the test stays short. It prints the recipe's summary and
     writes the run where the README says, ``outputs/wbrm_offline/lqr_exp1/<date>_seed0``."""
     readme = (ROOT / "README.md").read_text()
@@ -109,9 +132,8 @@ def test_the_readmes_python_api_runs_as_written(tmp_path):
     budget = "cfg.q.steps = 3000"
     assert budget in block, block
     block = block.replace(budget, "cfg.q.steps = 60; cfg.ratio.steps = 60; cfg.eval.episodes = 50")
-    proc = subprocess.run([sys.executable, "-c", block], cwd=tmp_path, capture_output=True, text=True, timeout=600,
-                          env={**__import__("os").environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg",
-                               "PYTHONPATH": str(ROOT)})
+    (tmp_path / "api.py").write_text(block)
+    proc = run_script(tmp_path / "api.py", cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "env lqr_exp1  seed 0  algo wbrm" in proc.stdout and "paired regret" in proc.stdout, proc.stdout
     runs = list((tmp_path / "outputs" / "wbrm_offline" / "lqr_exp1").glob("*_seed0"))
