@@ -58,7 +58,7 @@ def test_the_defaults_learn_every_benchmark_task_and_hold_at_three_times_the_bud
     task = BENCHMARK_TASKS[name]
     if not _available(task):
         pytest.skip(f"{task.env_id} needs {task.requires} (pip install -e '.[benchmark]')")
-    row = make_benchmark_task(name, tmp_path / "data", reference_episodes=20, **SIZES[name])
+    row = make_benchmark_task(name, tmp_path / "data", reference_episodes=20, few_demonstrations=False, **SIZES[name])
     behaviour = row["behaviour_normalised"]
     bar = (behaviour + 100.0) / 2
     short_steps = STEPS.get(name, DEFAULT_STEPS)
@@ -94,7 +94,7 @@ def test_the_same_seed_gives_the_same_figures_in_two_processes(tmp_path):
     from pathlib import Path
 
     row = make_benchmark_task("pendulum", tmp_path / "data", reference_episodes=5, expert_episodes=3,
-                              behaviour_episodes=6)
+                              behaviour_episodes=6, few_demonstrations=False)
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "wbrm_offline.py"
     env = {**os.environ, "WANDB_MODE": "offline", "MPLBACKEND": "Agg"}
     results = []
