@@ -20,9 +20,11 @@ torchrl_wbrm.data.benchmark``) when the data path does not hold them.
 Each cell of the table is the mean ± 95% Student-t interval over the seeds of the run's final figure (the recipe's
 own ``aggregate`` in ``results.json``): the normalised score (0 = uniform random actions, 100 = the dataset's
 expert; higher is better) for a benchmark task, the paired regret against the exact optimum (lower is better) for
-``lqr_exp1``. Below it: each seed's figure, the seeds that diverged or raised a flag, and the wall time of the
-recipe process. The load average (1 minute) before and after each run is printed with it: on a shared machine the
-wall times are only comparable at similar load.
+``lqr_exp1``. Below it: each seed's figure, the seeds that diverged or raised a flag, the wall time and the CPU
+time (user + system) of the recipe process, and the seconds it spent in the stage-2 updates and in the stage-2
+evaluations (the recipe's own ``timing``, wall seconds). The load average (1 minute) before and after each run is
+printed with it: on a shared machine the wall times are only comparable at similar load; the CPU time depends on it
+much less.
 
 A run directory that already holds a ``results.json`` is read, not run again (``--rerun`` runs it again), so an
 interrupted measurement resumes where it stopped. ``<out>/widths.json`` holds every cell; ``<out>/widths.md`` the
@@ -34,6 +36,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -90,21 +93,25 @@ def run_cell(task: str, width: int, seeds: list[int], data_path: str, out: Path,
             *width_overrides(width), "threads=1", "logger=none", f"hydra.run.dir={run_dir}"]
     print(f"\n{task} 2x{width}: python recipes/wbrm_offline.py {' '.join(args)}", flush=True)
     load_before = os.getloadavg()[0]
+    cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, str(RECIPE), *args], cwd=ROOT, env=_env(),
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     wall = time.perf_counter() - start
     load_after = os.getloadavg()[0]
+    cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (cpu_after.ru_utime - cpu_before.ru_utime) + (cpu_after.ru_stime - cpu_before.ru_stime)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "widths_run.log").write_text(proc.stdout)
-    record = {"wall_s": wall, "load_before": load_before, "load_after": load_after, "returncode": proc.returncode,
+    record = {"wall_s": wall, "cpu_s": cpu, "load_before": load_before, "load_after": load_after,
+              "returncode": proc.returncode,
               "command": f"python recipes/wbrm_offline.py {' '.join(args)}"}
     record_path.write_text(json.dumps(record, indent=2))
     if proc.returncode != 0 or not (run_dir / "results.json").is_file():
         print(proc.stdout[-3000:], file=sys.stderr)
         return {**record, "task": task, "width": width, "error": f"exit status {proc.returncode}"}
     cell = {**record, **summarise(task, width, json.loads((run_dir / "results.json").read_text()))}
-    print(f"  {format_cell(cell)}; per seed {format_seeds(cell)}; {wall:.0f} s "
+    print(f"  {format_cell(cell)}; per seed {format_seeds(cell)}; {wall:.0f} s wall, {cpu:.0f} s CPU "
           f"(load {load_before:.1f} → {load_after:.1f})", flush=True)
     return cell
 
@@ -126,7 +133,8 @@ def summarise(task: str, width: int, results: dict) -> dict:
     return {"task": task, "width": width, "figure": figure, "mean": agg.get("mean"),
             "half_width": agg.get("half_width"), "n": agg.get("n"), "per_seed": per_seed, "flags": flags,
             "diverged": results.get("seeds_diverged", []), "vectorised": results.get("vectorised"),
-            "recipe_s": timing.get("total"), "training_s": timing.get("training")}
+            "recipe_s": timing.get("total"), "q_updates_s": timing.get("q_updates"),
+            "q_evaluations_s": timing.get("q_evaluations"), "ratio_updates_s": timing.get("ratio_updates")}
 
 
 def _num(value, fmt: str) -> str:
@@ -162,7 +170,9 @@ def table(cells: list[dict], tasks: list[str], widths: list[int], seeds: list[in
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for task in tasks:
         figure = "regret ↓" if task in LQR_TASKS else "normalised score ↑"
-        rows = {"mean ± 95% CI": [], f"seeds {', '.join(str(s) for s in seeds)}": [], "wall time (load)": []}
+        rows = {"mean ± 95% CI": [], f"seeds {', '.join(str(s) for s in seeds)}": [], "wall time (load)": [],
+                "CPU time": [],
+                "stage-2 updates / evaluations": []}
         for w in widths:
             cell = by_key.get((task, w))
             if cell is None:
@@ -175,6 +185,9 @@ def table(cells: list[dict], tasks: list[str], widths: list[int], seeds: list[in
             load = cell.get("load_before"), cell.get("load_after")
             rows["wall time (load)"].append(
                 "n/a" if wall is None else f"{wall:.0f} s ({_num(load[0], '.1f')}–{_num(load[1], '.1f')})")
+            rows["CPU time"].append(f"{_num(cell.get('cpu_s'), '.0f')} s")
+            rows["stage-2 updates / evaluations"].append(
+                f"{_num(cell.get('q_updates_s'), '.0f')} s / {_num(cell.get('q_evaluations_s'), '.0f')} s")
         for i, (label, values) in enumerate(rows.items()):
             lines.append(f"| {task if i == 0 else ''} | {figure + ', ' if i == 0 else ''}{label} | "
                          + " | ".join(values) + " |")
