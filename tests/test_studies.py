@@ -1,8 +1,9 @@
-"""The studies' ``--quick`` versions (CI), each in a subprocess as a user would launch it, and the runner's local
-path (a cell's seeds in one process) on a tiny LQR config.
+"""The studies' ``--quick`` versions (CI), and the runner's local path (a cell's seeds in one process) on a tiny LQR
+config. The weighting study runs in a subprocess, as a user launches it; the others run in the test process with one
+job (tests/inprocess.py: the cells train here one after another, and no worker process imports torch again).
 
 Apart from ``tests/test_recipes.py`` (the main recipe's smoke runs) so that ``--dist loadfile`` can put the two
-files' minutes of subprocess runs on different workers."""
+files' minutes of runs on different workers."""
 from __future__ import annotations
 
 import json
@@ -12,9 +13,10 @@ import sys
 
 import pytest
 
+from tests.inprocess import run_script
 from tests.references import ROOT
 
-pytestmark = pytest.mark.slow  # each test runs a study in a subprocess, or trains
+pytestmark = pytest.mark.slow  # each test runs a study, or trains
 
 #: the tiny LQR config (tests/references.py) as study overrides, after the ``quick`` study budget
 TINY_BUDGET = [
@@ -32,6 +34,15 @@ def run_study(script: str, *args: str, timeout: int = 300) -> subprocess.Complet
         cwd=ROOT, capture_output=True, text=True, timeout=timeout,
         env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"},
     )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc
+
+
+def run_study_here(script: str, *args: str) -> subprocess.CompletedProcess:
+    """``python recipes/<script> --quick --jobs 1 <args>`` in this process, without the study's wandb summary run
+    (``WANDB_MODE=disabled``; tests/test_wandb.py checks that run); fail with its output's tail if it fails."""
+    proc = run_script(ROOT / "recipes" / script, "--quick", "--jobs", "1", *args,
+                      env={**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"})
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc
 
@@ -62,8 +73,8 @@ def test_paper_tables_quick(tmp_path):
     at one other budget, 20 steps, on lqr_exp1)."""
     from torchrl_wbrm.algos import algo_names
 
-    run_study("paper_tables.py", "--envs", "lqr_exp1", "mountain_car", "--budget-steps", "20", "--out", str(tmp_path),
-              timeout=900)
+    run_study_here("paper_tables.py", "--envs", "lqr_exp1", "mountain_car", "--budget-steps", "20", "--out",
+                   str(tmp_path))
     algos = algo_names()
     finished = {(p.parents[1].parent.name, p.parents[1].name) for p in tmp_path.glob("*/*/seed0/results.json")}
     assert len(algos) >= 10 and finished == {(env, a) for env in ("lqr_exp1", "mountain_car") for a in algos}
@@ -82,7 +93,7 @@ def test_paper_tables_quick(tmp_path):
 
 
 def test_ablations_quick(tmp_path):
-    run_study("ablations.py", "--jobs", "1", "--out", str(tmp_path))
+    run_study_here("ablations.py", "--out", str(tmp_path))
     tables = (tmp_path / "tables.md").read_text()
     # the default run appears in every block; the KL setting in its own; BRM beside WBRM for behaviour noise
     for block in ("residual x bootstrap", "ratio divergence", "expert noise τ", "expert data size m", "behaviour noise"):
