@@ -3,8 +3,6 @@ normalisation, ensembles, value scaling, input normalisation and the learning-ra
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -26,6 +24,8 @@ from torchrl_wbrm.modules import (
     resolve_activation,
 )
 from torchrl_wbrm.training import WBRMConfig, validate_config
+
+from tests.inprocess import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -189,8 +189,7 @@ def test_cosine_schedule_anneals_every_optimiser_and_resumes_exactly(tmp_path, s
 
 def test_q_accuracy_study_quick(tmp_path):
     out = tmp_path / "study"
-    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "q_accuracy_study.py"), "--quick", "--jobs", "1",
-                           "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    proc = run_script(ROOT / "recipes" / "q_accuracy_study.py", "--quick", "--jobs", "1", "--out", out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     tables = (out / "tables.md").read_text()
     assert "### activation" in tables and "| lqr_exp1 | ReLU |" in tables and "SiLU (default)" in tables
