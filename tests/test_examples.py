@@ -1,20 +1,20 @@
 """The examples/ scripts run (``--quick``) and learn: each asserts an outcome against a computed reference, with a
 margin, not only that the script finished.
 
-All five run in one subprocess (one interpreter start and one torch/torchrl import instead of five), each through
-``runpy`` as ``python examples/<name>.py --quick`` would run it; their printed output is parsed.
+All five run in the test process (one torch/torchrl import instead of five), each through
+:func:`tests.inprocess.run_script` as ``python examples/<name>.py --quick`` would run it; their printed output is
+parsed.
 """
 from __future__ import annotations
 
-import json
 import os
 import re
-import subprocess
-import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from tests.inprocess import run_script
 from tests.references import reference_regrets
 
 #: one xdist worker runs this module (``pytest -n 2 --dist loadfile``): its shared runs are computed once
@@ -22,31 +22,20 @@ from tests.references import reference_regrets
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr", "weighted_iql_lqr"]
 
-DRIVER = """
-import contextlib, io, json, runpy, sys, time
-out, log_dir, names = {}, sys.argv[1], sys.argv[2:]
-for name in names:
-    sys.argv = [f"examples/{name}.py", "--quick", "--log-dir", f"{log_dir}/{name}"]
-    buffer, t0 = io.StringIO(), time.process_time()
-    with contextlib.redirect_stdout(buffer):
-        runpy.run_path(f"examples/{name}.py", run_name="__main__")
-    out[name] = {"stdout": buffer.getvalue(), "cpu_seconds": time.process_time() - t0}
-print(json.dumps(out))
-"""
-
 
 @pytest.fixture(scope="session")
 def outputs(tmp_path_factory):
     log_dir = tmp_path_factory.mktemp("example_logs")
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-c", DRIVER, str(log_dir), *EXAMPLES], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
-    for name, run in result.items():
-        print(f"{name}: {run['cpu_seconds']:.1f} s CPU\n{run['stdout']}")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = {}
+    for name in EXAMPLES:
+        start = time.process_time()
+        proc = run_script(ROOT / "examples" / f"{name}.py", "--quick", "--log-dir", log_dir / name, env=env)
+        assert proc.returncode == 0, f"{name}:\n{proc.stderr[-3000:]}"
+        print(f"{name}: {time.process_time() - start:.1f} s CPU\n{proc.stdout}")
         assert any((log_dir / name).rglob("*.csv")), f"{name} wrote no CSV log"  # TorchRL's CSVLogger was used
-    return {name: run["stdout"] for name, run in result.items()}
+        result[name] = proc.stdout
+    return result
 
 
 def _figure(text: str, label: str, what: str = "regret") -> float:
