@@ -3,6 +3,9 @@ Ray cluster this test starts (``ray start --head``) and stops, and through submi
 Slurm would run), each with the sweep's table over seeds (``recipes/summarise.py``). Tiny budgets (tests/test_recipes.py's);
 the cluster start is most of the cost.
 
+The Ray driver is a ``python`` of its own (it joins the cluster, which the fixture then stops); the submitit sweep's
+driver runs in the test process, and its two jobs are processes of their own, as Slurm's would be.
+
 Both launchers are in the dev install (pyproject.toml); without them these tests skip and say so.
 """
 from __future__ import annotations
@@ -119,6 +122,7 @@ def test_multirun_on_a_local_ray_cluster(tmp_path, ray_cluster):
         # the launcher sets a default object_store_memory, which ray.init refuses when it joins a running cluster
         "+hydra.launcher.ray.init.object_store_memory=null",
         "seed=0,1", "ratio.source=none", *TINY_LQR, "plots=false", "logger=none", f"hydra.sweep.dir={tmp_path}",
+        process=True,
     )
     out = proc.stdout + proc.stderr
     # the driver joined the cluster the fixture started (Ray prints the node's own IP, so match the port)
