@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from hydra import compose, initialize_config_dir
@@ -222,10 +223,25 @@ def test_the_studies_budgets_are_read_from_the_yaml():
         study_budget("tables")
 
 
-def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path):
+def _in_this_process(cmd, *, check, cwd, env):
+    """``subprocess.run`` of ``python <script> <args>`` through :func:`tests.inprocess.run_script`."""
+    from tests.inprocess import run_script
+
+    assert cmd[0] == sys.executable, cmd
+    proc = run_script(cmd[1], *cmd[2:], cwd=cwd, env=env)
+    if check and proc.returncode:
+        raise subprocess.CalledProcessError(proc.returncode, cmd, proc.stdout, proc.stderr)
+    return proc
+
+
+def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path, monkeypatch):
     """``run_cells(..., launcher=...)``: one Hydra multirun per cell (here Hydra's joblib launcher), each run in its
-    cell directory with the cell's labels in its results, as a local run writes them; finished runs are skipped."""
+    cell directory with the cell's labels in its results, as a local run writes them; finished runs are skipped. The
+    multirun command the runner starts runs in this process (tests/test_launchers.py starts one as its own python)."""
+    from torchrl_wbrm.training import runs
     from torchrl_wbrm.training.runs import cell_dir, run_cells, study_budget
+
+    monkeypatch.setattr(runs, "subprocess", SimpleNamespace(run=_in_this_process))
 
     cell = {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "brm", "overrides": ["algo=brm"]}
     budget = [*study_budget("quick"), "q.steps=4", "q.eval_every=4", "eval.episodes=10", "eval.train_episodes=10"]
