@@ -13,6 +13,8 @@ writes there, so whatever reads a study's output finds the same files.
 """
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import os
 import subprocess
@@ -65,7 +67,14 @@ def study_budget(name: str) -> list[str]:
 
 
 def compose_recipe_config(overrides: list[str], config_name: str = "wbrm_offline"):
-    """``configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``."""
+    """``configs/<config_name>.yaml`` composed with ``overrides`` (and ``threads=1``), as a Hydra ``DictConfig``: a
+    copy of the process's one composition of those overrides (a study asks for each cell's config more than once:
+    whether its seeds are finished, then to run them)."""
+    return copy.deepcopy(_composed(tuple(overrides), config_name))
+
+
+@functools.lru_cache(maxsize=256)
+def _composed(overrides: tuple[str, ...], config_name: str):
     from hydra import compose, initialize_config_dir
 
     from torchrl_wbrm.training.config import register_configs
