@@ -16,7 +16,8 @@ from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_netwo
 from torchrl_wbrm.objectives import WeightedBellmanLoss
 from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate  # torchrl's SoftUpdate, one foreach lerp per step
-from torchrl_wbrm.objectives.functional import td3bc_lambda
+from torchrl_wbrm.objectives._utils import get_entry
+from torchrl_wbrm.objectives.functional import action_cloning, td3bc_lambda
 
 #: the recipe's schema, :class:`torchrl_wbrm.training.config.WBRMConfig` (a layer above this one: only its fields are
 #: read here, never imported)
@@ -196,37 +197,58 @@ class ExpertCloning:
     (checkpointed with the run), as the buffer's ``sample()`` draws them, gathered by
     :class:`~torchrl_wbrm.data.sampling.BufferBatches` (the same indices, without the buffer's per-call bookkeeping).
 
+    With ``weighted_d`` (``q.expert_bc_weighted_d``) the actor also clones the actions of the D batch its step
+    receives, each row weighted by its stored ŵ (``weight_key``, the trainer's ``"density_ratio"``, after its
+    shaping) and self-normalised over the batch: the loss gains ``Σ_b w_b ‖(μ(x_b) − a_b) / h‖² / m / Σ_b w_b``
+    (:func:`~torchrl_wbrm.objectives.functional.action_cloning`, as the S^e term), so μ clones S^e and the rows of
+    D that ŵ calls expert-like. Where there is no ŵ (``algo=brm``, ``ratio.source=none``) the stored weight is 1
+    and the term is the plain cloning of D's actions.
+
     Args:
         actor: the actor (its parameters are the loss's ``actor_network_params``).
         expert_samples: S^e, a TensorDict with the actor's in_keys and ``"action"``.
         action_spec: the action box.
         alpha: α.
         batch_size: S^e samples per actor step.
+        weighted_d: add the weighted cloning of the D batch (the ``batch`` each call is given).
+        weight_key: the D batch's entry holding each row's weight.
     """
 
     def __init__(self, actor, expert_samples: TensorDictBase, action_spec: Bounded, *, alpha: float,
-                 batch_size: int) -> None:
+                 batch_size: int, weighted_d: bool = False, weight_key: str = "density_ratio") -> None:
         from torchrl_wbrm.data import make_replay_buffer
 
         if not alpha > 0:
             raise ValueError(f"q.expert_bc_alpha must be > 0 or null, got {alpha!r}.")
         self.actor, self.alpha = actor, float(alpha)
+        self.weighted_d, self.weight_key = bool(weighted_d), weight_key
         keys = list(actor.in_keys) + ["action"]
         self.buffer = make_replay_buffer(expert_samples.select(*keys), batch_size=batch_size)
         self.centre = ((action_spec.space.high + action_spec.space.low) / 2).to(torch.float32)
         self.half_width = ((action_spec.space.high - action_spec.space.low) / 2).clamp_min(1e-6).to(torch.float32)
 
-    def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params) -> tuple[torch.Tensor, dict]:
+    def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params,
+                 batch: TensorDictBase | None = None) -> tuple[torch.Tensor, dict]:
         """``loss_q = −mean_D Q(x, μ(x))`` and ``q_mean_abs = |mean_D Q(x, μ(x))|``; returns the actor's loss and the
-        cloning term (detached)."""
+        cloning terms (detached). ``batch``: the actor step's D batch, needed with :attr:`weighted_d`."""
         batches = self.batches()
         expert = self.buffer.sample() if batches is None else batches.sample()
-        inputs = {key: expert.get(key) for key in self.actor.in_keys}
-        mu = self.network_call(params)(params, inputs, expert.batch_size)
+        call = self.network_call(params)
+        mu = call(params, {key: expert.get(key) for key in self.actor.in_keys}, expert.batch_size)
         if self.half_width.device != mu.device:
             self.half_width = self.half_width.to(mu.device)
-        bc = ((mu - expert["action"]) / self.half_width).pow(2).mean()
-        return td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc, {"expert_bc_loss": bc.detach()}
+        bc = action_cloning(mu, expert["action"], self.half_width)
+        loss = td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc
+        figures = {"expert_bc_loss": bc.detach()}
+        if self.weighted_d:
+            if batch is None:
+                raise ValueError("ExpertCloning(weighted_d=True) clones the actor step's D batch: pass it as batch=.")
+            mu_d = call(params, {key: batch.get(key) for key in self.actor.in_keys}, batch.batch_size)
+            bc_d = action_cloning(mu_d, batch["action"], self.half_width,
+                                  get_entry(batch, self.weight_key, "each D row's cloning weight"))
+            loss = loss + bc_d
+            figures["weighted_d_bc_loss"] = bc_d.detach()
+        return loss, figures
 
     def batches(self):
         """S^e's batches: :class:`~torchrl_wbrm.data.sampling.BufferBatches` over :attr:`buffer` (the indices
@@ -277,7 +299,7 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
             loss_actor, actor_figures = loss.actor_loss(batch)
             if cloning is not None:
                 loss_actor, bc_figures = cloning(loss_actor, actor_figures["actor_q_mean"].abs(),
-                                                 loss.actor_network_params)
+                                                 loss.actor_network_params, batch)
                 out.update(bc_figures)
             descend(loss_actor, optimisers["actor"])
             out["loss_actor"] = loss_actor.detach()
@@ -316,7 +338,8 @@ def bellman_residual_algo(ctx: AlgoContext, *, weighted: bool) -> Algo:
     cloning = None
     if qc.expert_bc_alpha:  # the actor's support term, toward S^e's actions (validate_config: not with bc_alpha)
         cloning = ExpertCloning(actor, ctx.task.datasets.expert_samples[:], ctx.action_spec,
-                                alpha=qc.expert_bc_alpha, batch_size=qc.batch_size)
+                                alpha=qc.expert_bc_alpha, batch_size=qc.batch_size,
+                                weighted_d=qc.expert_bc_weighted_d)
     return Algo(
         loss=loss,
         optimisers=optimisers,
@@ -335,7 +358,8 @@ def discrete_bellman_residual_algo(ctx: AlgoContext, *, weighted: bool, num_acti
     actions, where Q is unconstrained (measured on CartPole-v1: Q blew up, return 9 against the behaviour data's
     94). Targets by ``SoftUpdate`` after every step (``q.target_tau``), or residual gradient (``q.bootstrap``)."""
     qc = ctx.cfg.q
-    for key, value in (("q.bc_alpha", qc.bc_alpha), ("q.weight_actor_loss", qc.weight_actor_loss)):
+    for key, value in (("q.bc_alpha", qc.bc_alpha), ("q.weight_actor_loss", qc.weight_actor_loss),
+                       ("q.expert_bc_weighted_d", qc.expert_bc_weighted_d)):
         if value:
             raise ValueError(f"{key}={value!r} configures the actor, but a Discrete({num_actions}) action has none "
                              f"(Q over the {num_actions} actions, the policy greedy in Q): unset {key}.")

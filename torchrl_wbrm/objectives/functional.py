@@ -6,7 +6,8 @@ quantities by calling the functions below, and nothing else computes them:
 - stage 1, the density ratio: :func:`power_divergence_integrands` and :func:`basu_power_divergence`;
 - stage 2, the Bellman residual: :func:`bellman_target`, :func:`bellman_residual`, :func:`weighted_bellman_residual`
   (its two forms) and MABO's :func:`average_bellman_residual`;
-- the actor: :func:`td3bc_lambda`, TD3+BC's normalisation of the Q term;
+- the actor: :func:`td3bc_lambda`, TD3+BC's normalisation of the Q term, and :func:`action_cloning`, its cloning
+  term (plain, or weighted and self-normalised over the batch);
 - Q's blow-up bound: :func:`q_value_bound`, the largest |Q| a discounted return of bounded rewards reaches;
 - the per-sample weight: :func:`per_sample_weight` (reading ŵ and the priority weight), :func:`reduce_batch`,
   :func:`weighted_reduce` and :func:`effective_sample_size`.
@@ -24,6 +25,7 @@ from torchrl_wbrm.objectives._utils import check_sign, fast_get, get_entry, per_
 
 __all__ = [
     "RESIDUALS",
+    "action_cloning",
     "average_bellman_residual",
     "basu_power_divergence",
     "bellman_residual",
@@ -406,6 +408,44 @@ def td3bc_lambda(alpha: float, q_value: torch.Tensor) -> torch.Tensor:
         tensor(1.2500)
     """
     return alpha / q_value.abs().mean().detach().clamp_min(1e-6)
+
+
+def action_cloning(mu: torch.Tensor, action: torch.Tensor, half_width: torch.Tensor,
+                   weight: torch.Tensor | None = None) -> torch.Tensor:
+    r"""The actor's cloning term in unit actions: the batch mean of ``‖(μ(x_b) − a_b) / h‖² / m``, or, with
+    ``weight``, its mean self-normalised by the weights.
+
+    .. math::
+
+        \ell_b = \frac1m \left\lVert \frac{\mu(x_b) - a_b}{h} \right\rVert^2, \qquad
+        \text{plain}: \frac1n \sum_b \ell_b, \qquad
+        \text{weighted}: \frac{\sum_b w_b \ell_b}{\sum_b w_b}
+
+    ``h`` is the half-width of the action box (the term has the same size whatever the action bounds) and ``m``
+    the action dimension. The weights are detached (no gradient reaches them) and their sum is clamped at the
+    dtype's smallest positive number: a batch whose weights are all 0 contributes 0. A row of weight 0 drops out;
+    equal weights give the plain mean.
+
+    Args:
+        mu (Tensor): the actor's actions ``μ(x_b)``, shape ``[*B, m]``.
+        action (Tensor): the actions cloned ``a_b``, shape ``[*B, m]``.
+        half_width (Tensor): ``h``, shape ``[m]`` (or broadcastable).
+        weight (Tensor, optional): ``w_b ≥ 0``, ``*B`` elements (``[*B]`` or ``[*B, 1]``); ``None``: the plain mean.
+
+    Examples:
+        >>> import torch
+        >>> mu, a, h = torch.tensor([[1.0], [0.0]]), torch.tensor([[0.0], [0.0]]), torch.tensor([2.0])
+        >>> action_cloning(mu, a, h)  # (0.25 + 0) / 2
+        tensor(0.1250)
+        >>> action_cloning(mu, a, h, torch.tensor([3.0, 1.0]))  # (3 · 0.25 + 1 · 0) / 4
+        tensor(0.1875)
+    """
+    scaled = ((mu - action) / half_width).pow(2)
+    if weight is None:
+        return scaled.mean()
+    per_row = scaled.mean(-1)
+    weight = weight.detach().reshape(per_row.shape).to(per_row.dtype)
+    return (weight * per_row).sum() / weight.sum().clamp_min(torch.finfo(per_row.dtype).tiny)
 
 
 # ---------------------------------------------------------------------- Q's scale

@@ -139,6 +139,12 @@ class QConfig:
             continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's, 1.0 (0 for
             MountainCar, which clones D); 0: off (the paper's actor, which only maximises Q). Setting one of
             ``bc_alpha`` and ``expert_bc_alpha`` turns the other off unless it is set too (both on is refused).
+        expert_bc_weighted_d: add to that cloning term the ŵ-weighted cloning of the actor step's D batch,
+            ``Σ_b w_b ‖(μ(x_b) − a_b)/h‖²/m / Σ_b w_b`` with ``w_b`` the row's stored weight (``"density_ratio"``,
+            after ``ratio.temper``, ``ratio.clip``, ``ratio.aggregate`` and the self-normalisation), self-normalised
+            over the batch: μ clones S^e and the rows of D that ŵ calls expert-like. Needs ``expert_bc_alpha`` > 0
+            (``wbrm`` and ``brm``, a continuous action). Where there is no ŵ (``algo=brm``, ``ratio.source=none``)
+            every stored weight is 1: the term is the plain cloning of D's actions, the ŵ ≡ 1 control.
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
             (a criterion a user without ground truth can compute).
@@ -171,6 +177,7 @@ class QConfig:
     weight_actor_loss: bool = False
     bc_alpha: Optional[float] = None
     expert_bc_alpha: Optional[float] = None
+    expert_bc_weighted_d: bool = False
     grad_clip: Optional[float] = None
     init_bias: bool = True
     holdout_fraction: float = 0.1
@@ -496,6 +503,11 @@ def validate_config(cfg, task: Task | None = None) -> None:
     if cfg.q.bc_alpha and cfg.q.expert_bc_alpha:
         raise ValueError(f"q.bc_alpha={cfg.q.bc_alpha} (cloning D's actions) and q.expert_bc_alpha="
                          f"{cfg.q.expert_bc_alpha} (cloning S^e's) are both on: set one of them to 0.")
+    if cfg.q.expert_bc_weighted_d and not cfg.q.expert_bc_alpha:
+        raise ValueError("q.expert_bc_weighted_d=true adds the ŵ-weighted cloning of D to the actor's S^e cloning "
+                         f"term, which is off (q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
+    if cfg.q.expert_bc_weighted_d and cfg.algo not in ("wbrm", "brm"):
+        raise ValueError(f"q.expert_bc_weighted_d=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)

@@ -478,13 +478,14 @@ class _QUpdate:
         return loss, figures
 
     def _actor_loss(self, p, batch, expert_batch=None):
-        """One seed's actor loss (inside the vmap): ``WeightedBellmanLoss.actor_loss``, then the S^e cloning term."""
+        """One seed's actor loss (inside the vmap): ``WeightedBellmanLoss.actor_loss``, then the S^e cloning term
+        (and, with ``q.expert_bc_weighted_d``, the ŵ-weighted cloning of this seed's D batch)."""
         with self._swap(p):
             loss, diagnostics = self.loss.actor_loss(batch)
             figures = {k: v for k, v in diagnostics.items() if k == "bc_loss"}
             if expert_batch is not None:
                 self.cloning.buffer = _Given(expert_batch)
-                loss, bc = self.cloning(loss, diagnostics["actor_q_mean"].abs(), _Flat(p[_ACTOR]))
+                loss, bc = self.cloning(loss, diagnostics["actor_q_mean"].abs(), _Flat(p[_ACTOR]), batch)
                 figures.update(bc)
         return loss, figures
 
@@ -563,7 +564,7 @@ def _expert_cloning(trainer):
     from torchrl_wbrm.algos.base import ExpertCloning
 
     return ExpertCloning(trainer.actor, trainer.datasets.expert_samples[:], trainer.action_spec,
-                         alpha=qc.expert_bc_alpha, batch_size=qc.batch_size)
+                         alpha=qc.expert_bc_alpha, batch_size=qc.batch_size, weighted_d=qc.expert_bc_weighted_d)
 
 
 # ---------------------------------------------------------------------- results
