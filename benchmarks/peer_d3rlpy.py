@@ -1,24 +1,36 @@
-"""TD3+BC, CQL and IQL of this project against d3rlpy 2.8.1's on the same LQR exp1 data, scored alike.
+"""TD3+BC, CQL and IQL of this project against d3rlpy 2.8.1's on the same data (LQR exp1 or two Minari datasets),
+scored alike.
 
-    python benchmarks/peer_d3rlpy.py                       # 3,000 updates each, seed 0
+    python benchmarks/peer_d3rlpy.py                       # LQR exp1: 3,000 updates each, seed 0
     python benchmarks/peer_d3rlpy.py --steps 3000 --cql-steps 1000 --algos td3bc,iql,cql
+    python benchmarks/peer_d3rlpy.py --env minari --data-path datasets/benchmark \
+        --expert benchmark/pendulum/expert-v0 --behaviour benchmark/pendulum/behaviour-expert10-v0 \
+        --algos iql --steps 10000 --eval-episodes 30 --seeds 0,1,2
 
 What it does, in order (one process at a time, one torch thread each):
 
 1. builds d3rlpy's own virtual environment (``.peer/d3rlpy-venv``, ignored by git: d3rlpy 2.8.1 pins gymnasium
    1.0.0) with ``python -m venv`` and ``pip install torch==2.13.0 d3rlpy==2.8.1``, unless it is there;
-2. exports the recipe's training data D for ``env=lqr_exp1`` and the seed (``WBRMTrainer.q_train_data``: the
-   behaviour and expert episodes less the held-out episodes, 18,000 transitions at seed 0) to ``data.npz``;
+2. exports the transitions this project's algo trains on for the env and the seed (``WBRMTrainer.q_train_data``:
+   for ``env=lqr_exp1`` the behaviour and expert episodes less the held-out episodes, 18,000 transitions at seed 0;
+   for ``--env minari`` D, the behaviour dataset's episodes that are not S^b, less the held-out episodes) to
+   ``data.npz``;
 3. per algo, trains d3rlpy's algorithm on exactly those transitions in a subprocess of that venv (every transition
    one two-observation episode, so each (x, a, r, x') is d3rlpy's transition as stored; ``MinMaxActionScaler`` on
-   the env's box [−5, 5]², γ of the env, d3rlpy's defaults otherwise: 2×256 ReLU networks, batch 256, its learning
-   rates and τ) and saves its greedy policy as TorchScript (d3rlpy's ``save_policy``, the action scaler included);
-4. trains this project's algo on the same data (``algo=<name>``, the recipe's defaults, ``q.steps`` = the budget);
-5. scores both policies with this project's paired regret (``LQRTask``'s evaluator: 1,000 paired episodes against
-   the exact optimum, the recipe's ``eval.seed``) and prints the table, with the seconds per 1,000 updates of each
-   (d3rlpy: its ``fit`` loop; this project: the trainer's update steps, batch sampling included; evaluations out).
+   the env's action box; ``StandardObservationScaler`` of those transitions where this project standardises the
+   observations (``q.normalise_observations``: Minari, not LQR); γ of the env; d3rlpy's defaults otherwise: 2×256
+   ReLU networks, batch 256, its learning rates and τ) and saves its greedy policy as TorchScript (d3rlpy's
+   ``save_policy``, the scalers included);
+4. trains this project's algo on the same data (``algo=<name>``, the recipe's defaults, ``q.steps`` = the budget,
+   plus any ``--set KEY=VALUE`` overrides);
+5. scores both policies with this project's evaluator of the env and prints the table, with the seconds per 1,000
+   updates of each (d3rlpy: its ``fit`` loop; this project: the trainer's update steps, batch sampling included;
+   evaluations out). LQR: the paired regret (``LQRTask``'s evaluator: 1,000 paired episodes against the exact
+   optimum, the recipe's ``eval.seed``). Minari: the mean return and D4RL's normalised score over the same
+   ``eval.episodes`` episodes of the datasets' gymnasium env (``--eval-episodes``, default the recipe's 100).
 
-Everything is written under ``--out`` (default ``results/peer_d3rlpy``); ``summary.json`` holds the table. d3rlpy's
+Everything is written under ``--out`` (default ``results/peer_d3rlpy``); ``summary.json`` holds the table. With several
+``--seeds`` the table gives each side's mean over the seeds with a 95% t interval over them. d3rlpy's
 run of an (algo, budget, seed) on the same data (by the sha256 of its arrays) is saved and reused on a later call
 (``--rerun-peer`` to train it again; seeded, it gives the same policy); this project's side is always trained anew.
 """
@@ -50,7 +62,7 @@ def peer_train(data_path: str, algo: str, steps: int, seed: int, policy_path: st
 
     import d3rlpy
     from d3rlpy.dataset import Episode, InfiniteBuffer, ReplayBuffer
-    from d3rlpy.preprocessing import MinMaxActionScaler
+    from d3rlpy.preprocessing import MinMaxActionScaler, StandardObservationScaler
 
     torch.set_num_threads(1)
     data = np.load(data_path)
@@ -68,12 +80,13 @@ def peer_train(data_path: str, algo: str, steps: int, seed: int, policy_path: st
                            action_size=act.shape[1])
     assert dataset.transition_count == obs.shape[0], (dataset.transition_count, obs.shape[0])
     d3rlpy.seed(seed)
-    scaler = MinMaxActionScaler(minimum=low, maximum=high)
-    gamma = float(data["gamma"])
+    scalers = {"action_scaler": MinMaxActionScaler(minimum=low, maximum=high), "gamma": float(data["gamma"])}
+    if "observation_scaler" in data.files and bool(data["observation_scaler"]):  # fitted on the transitions
+        scalers["observation_scaler"] = StandardObservationScaler()
     config = {
-        "td3bc": lambda: d3rlpy.algos.TD3PlusBCConfig(action_scaler=scaler, gamma=gamma),
-        "cql": lambda: d3rlpy.algos.CQLConfig(action_scaler=scaler, gamma=gamma),
-        "iql": lambda: d3rlpy.algos.IQLConfig(action_scaler=scaler, gamma=gamma),
+        "td3bc": lambda: d3rlpy.algos.TD3PlusBCConfig(**scalers),
+        "cql": lambda: d3rlpy.algos.CQLConfig(**scalers),
+        "iql": lambda: d3rlpy.algos.IQLConfig(**scalers),
     }[algo]()
     learner = config.create(device="cpu:0")
     learner.build_with_dataset(dataset)
@@ -130,8 +143,22 @@ def compose(overrides: list[str]):
         return hydra_compose("wbrm_offline", overrides=[*overrides, "threads=1"])
 
 
-def base_overrides(seed: int, steps: int, algo: str) -> list[str]:
-    return ["env=lqr_exp1", f"seed={seed}", f"algo={algo}", f"q.steps={steps}", f"q.eval_every={steps}",
+def env_overrides(args) -> list[str]:
+    """The recipe's env overrides of ``--env`` (and, for ``minari``, its datasets and evaluation episodes)."""
+    if args.env != "minari":
+        return [f"env={args.env}"]
+    missing = [name for name in ("data_path", "expert", "behaviour") if not getattr(args, name)]
+    if missing:
+        raise SystemExit(f"--env minari needs {', '.join('--' + m.replace('_', '-') for m in missing)}.")
+    out = ["env=minari", f"env.minari.data_path={Path(args.data_path).resolve()}", f"env.minari.expert={args.expert}",
+           f"env.minari.behaviour={args.behaviour}"]
+    if args.expert_episodes is not None:
+        out.append(f"env.minari.expert_episodes={args.expert_episodes}")
+    return out
+
+
+def base_overrides(seed: int, steps: int, algo: str, env: list[str] | None = None) -> list[str]:
+    return [*(env or ["env=lqr_exp1"]), f"seed={seed}", f"algo={algo}", f"q.steps={steps}", f"q.eval_every={steps}",
             "checkpoint_every=0", "plots=false", "logger=none"]
 
 
@@ -142,7 +169,8 @@ def export_data(trainer, path: Path) -> int:
     np.savez(path, observation=d["observation"].numpy(), action=d["action"].numpy(),
              reward=d["next", "reward"].numpy(), next_observation=d["next", "observation"].numpy(),
              terminated=d["next", "terminated"].numpy(), action_low=spec.space.low.numpy(),
-             action_high=spec.space.high.numpy(), gamma=np.float64(trainer.gamma))
+             action_high=spec.space.high.numpy(), gamma=np.float64(trainer.gamma),
+             observation_scaler=np.bool_(bool(trainer.cfg.q.normalise_observations)))
     return d.shape[0]
 
 
@@ -159,14 +187,16 @@ def data_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path | None):
-    """Train this project's ``algo``; returns (trainer, final figures, seconds of the update steps)."""
+def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path | None,
+                overrides: list[str] | None = None, env: list[str] | None = None):
+    """Train this project's ``algo`` (the recipe's defaults, then ``overrides``); returns (trainer, final figures,
+    seconds of the update steps)."""
     import torch
 
     from torchrl_wbrm.training import WBRMTrainer
 
     torch.set_num_threads(1)
-    cfg = compose(base_overrides(seed, steps, algo))
+    cfg = compose([*base_overrides(seed, steps, algo, env), *(overrides or [])])
     trainer = WBRMTrainer(cfg, run_dir, progress=False)
     if data_path is not None:
         export_data(trainer, data_path)
@@ -185,15 +215,52 @@ def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path
 
 
 def score(trainer, policy_path: Path) -> dict:
-    """This project's paired regret of a TorchScript policy (observation -> action), by the trainer's evaluator."""
+    """The trainer's evaluator's figures (LQR: the paired regret; Minari: the return and normalised score) of a
+    TorchScript policy (a batch of observations -> a batch of actions), over the recipe's evaluation episodes."""
     import torch
     from tensordict.nn import TensorDictModule
 
     scripted = torch.jit.load(str(policy_path))
-    policy = TensorDictModule(lambda x: scripted(x.float()), in_keys=["observation"], out_keys=["action"])
+    dim, action_dim = trainer.observation_dim, trainer.action_dim
+
+    def act(x: torch.Tensor) -> torch.Tensor:  # one observation or a batch, as the evaluator steps its env
+        return scripted(x.float().reshape(-1, dim)).reshape(*x.shape[:-1], action_dim)
+
+    policy = TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
     ec = trainer.cfg.eval
     with torch.no_grad():
         return trainer.evaluator.evaluate(policy, episodes=ec.episodes, seed=ec.seed)
+
+
+def _mean_ci(values: list[float]) -> tuple[float, float]:
+    """Mean and the half-width of its 95% t interval over the values (0 for one value)."""
+    import numpy as np
+    from scipy import stats
+
+    a = np.asarray(values, dtype=float)
+    if a.size < 2:
+        return float(a.mean()), 0.0
+    return float(a.mean()), float(stats.t.ppf(0.975, a.size - 1) * a.std(ddof=1) / np.sqrt(a.size))
+
+
+def _peer_policy(args, peer_python: Path, out: Path, data_path: Path, algo: str, steps: int, seed: int) -> tuple:
+    """d3rlpy's policy for (algo, steps, seed) on the exported data: trained in its venv, or its saved run reused."""
+    data_sha = data_digest(data_path)
+    policy_path = out / f"d3rlpy_{algo}_{steps}steps_seed{seed}.pt"
+    record = policy_path.with_suffix(".json")
+    peer = json.loads(record.read_text()) if record.is_file() and policy_path.is_file() else None
+    if peer is None or peer.get("data_sha256") != data_sha or args.rerun_peer:
+        proc = subprocess.run([str(peer_python), __file__, "--peer-worker", str(data_path), algo, str(steps),
+                               str(seed), str(policy_path)], capture_output=True, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+        if proc.returncode:
+            how = f"killed by signal {-proc.returncode}" if proc.returncode < 0 else f"exit code {proc.returncode}"
+            raise SystemExit(f"d3rlpy {algo} failed ({how}, in {peer_python}):\n{proc.stderr[-4000:]}")
+        peer = {**json.loads(proc.stdout.strip().splitlines()[-1]), "data_sha256": data_sha}
+        record.write_text(json.dumps(peer, indent=1, default=str))
+    else:
+        print(f"d3rlpy {algo}: its run on the same data, budget and seed is reused ({record})", flush=True)
+    return policy_path, peer
 
 
 def main(argv=None) -> None:
@@ -202,6 +269,18 @@ def main(argv=None) -> None:
     parser.add_argument("--cql-steps", type=int, default=None, help="CQL's budget, both libraries (default --steps)")
     parser.add_argument("--algos", default=",".join(ALGOS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", default=None, help="comma-separated training seeds (default: --seed)")
+    parser.add_argument("--env", default="lqr_exp1", help="lqr_exp1 (default) or minari (with the three below)")
+    parser.add_argument("--data-path", default=None, help="minari: the folder the dataset ids are looked up in")
+    parser.add_argument("--expert", default=None, help="minari: the expert dataset's id (S^e)")
+    parser.add_argument("--behaviour", default=None, help="minari: the behaviour dataset's id (D and S^b)")
+    parser.add_argument("--expert-episodes", type=int, default=None,
+                        help="minari: env.minari.expert_episodes (default: every expert episode)")
+    parser.add_argument("--eval-episodes", type=int, default=None,
+                        help="eval.episodes of both policies (default: the recipe's, the env's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a recipe override for this project's side only (repeatable), e.g. baselines.iql.lr=3e-4")
+    parser.add_argument("--no-peer", action="store_true", help="train and score this project's side only")
     parser.add_argument("--out", default=str(ROOT / "results" / "peer_d3rlpy"))
     parser.add_argument("--venv", default=str(VENV))
     parser.add_argument("--rerun-peer", action="store_true",
@@ -221,55 +300,63 @@ def main(argv=None) -> None:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    peer_python = ensure_venv(Path(args.venv))
-    data_path = out / "data.npz"
+    env = env_overrides(args)
+    overrides = [*args.set, *([f"eval.episodes={args.eval_episodes}"] if args.eval_episodes else [])]
+    minari = args.env == "minari"
+    metric, better = ("normalised_score", "higher") if minari else ("regret", "lower")
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
+    peer_python = None if args.no_peer else ensure_venv(Path(args.venv))
     rows = []
     for algo in args.algos.split(","):
         steps = args.cql_steps if (algo == "cql" and args.cql_steps) else args.steps
-        run_dir = out / f"project_{algo}"
-        shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
-        trainer, final, own_seconds = project_run(algo, steps, args.seed, run_dir, data_path)
-        data_sha = data_digest(data_path)
-        policy_path = out / f"d3rlpy_{algo}_{steps}steps_seed{args.seed}.pt"
-        record = policy_path.with_suffix(".json")
-        peer = json.loads(record.read_text()) if record.is_file() and policy_path.is_file() else None
-        if peer is None or peer.get("data_sha256") != data_sha or args.rerun_peer:
-            proc = subprocess.run([str(peer_python), __file__, "--peer-worker", str(data_path), algo, str(steps),
-                                   str(args.seed), str(policy_path)], capture_output=True, text=True,
-                                  env={**os.environ, "OMP_NUM_THREADS": "1"})
-            if proc.returncode:
-                how = (f"killed by signal {-proc.returncode}" if proc.returncode < 0
-                       else f"exit code {proc.returncode}")
-                raise SystemExit(f"d3rlpy {algo} failed ({how}, in {peer_python}):\n{proc.stderr[-4000:]}")
-            peer = {**json.loads(proc.stdout.strip().splitlines()[-1]), "data_sha256": data_sha}
-            record.write_text(json.dumps(peer, indent=1, default=str))
-        else:
-            print(f"d3rlpy {algo}: its run on the same data, budget and seed is reused ({record})", flush=True)
-        peer_score = score(trainer, policy_path)
-        row = {"algo": algo, "steps": steps, "seed": args.seed, "transitions": int(trainer.q_train_data.shape[0]),
-               "d3rlpy_regret": peer_score["regret"], "d3rlpy_regret_ci": peer_score["regret_ci"],
-               "project_regret": final["regret"], "project_regret_ci": final["regret_ci"],
-               "d3rlpy_s_per_1k": 1000 * peer["seconds"] / steps, "project_s_per_1k": 1000 * own_seconds / steps,
-               "d3rlpy_config": peer["config"]}
+        runs = []
+        for seed in seeds:
+            data_path = out / f"data_seed{seed}.npz"
+            run_dir = out / f"project_{algo}_seed{seed}"
+            shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
+            trainer, final, own_seconds = project_run(algo, steps, seed, run_dir, data_path, overrides, env)
+            run = {"seed": seed, "transitions": int(trainer.q_train_data.shape[0]), "project": final,
+                   "project_s_per_1k": 1000 * own_seconds / steps}
+            if peer_python is not None:
+                policy_path, peer = _peer_policy(args, peer_python, out, data_path, algo, steps, seed)
+                run["d3rlpy"] = score(trainer, policy_path)
+                run.update(d3rlpy_s_per_1k=1000 * peer["seconds"] / steps, d3rlpy_config=peer["config"])
+            trainer.release()
+            runs.append(run)
+            sides = [("this project", run["project"])] + ([("d3rlpy", run["d3rlpy"])] if "d3rlpy" in run else [])
+            print(f"{LABELS[algo]} seed {seed} ({steps} steps): " + ", ".join(
+                f"{name} {fig[metric]:.4g} ± {fig[metric + '_ci']:.3g}" for name, fig in sides), flush=True)
+        row = {"algo": algo, "steps": steps, "seeds": seeds, "metric": metric, "runs": runs,
+               "transitions": runs[0]["transitions"], "overrides": overrides}
+        for side in ("project", "d3rlpy"):
+            if side in runs[0]:
+                values = [r[side][metric] for r in runs]
+                mean, ci = _mean_ci(values) if len(values) > 1 else (values[0], runs[0][side][metric + "_ci"])
+                row[f"{side}_{metric}"], row[f"{side}_{metric}_ci"], row[f"{side}_values"] = mean, ci, values
+                row[f"{side}_s_per_1k"] = sum(r[f"{side}_s_per_1k"] for r in runs) / len(runs)
         rows.append(row)
-        print(f"{LABELS[algo]}: d3rlpy {row['d3rlpy_regret']:.4f} ± {row['d3rlpy_regret_ci']:.4f}, this project "
-              f"{row['project_regret']:.4f} ± {row['project_regret_ci']:.4f} ({steps} steps; s/1k updates "
-              f"{row['d3rlpy_s_per_1k']:.1f} vs {row['project_s_per_1k']:.1f})", flush=True)
         (out / "summary.json").write_text(json.dumps(rows, indent=1, default=str))
-    print(f"\nLQR exp1, seed {args.seed}, {rows[0]['transitions']} training transitions; paired regret (± 95% CI over "
-          f"1,000 paired episodes)\n")
-    lines = ["| method | steps | d3rlpy 2.8.1 | this project | s / 1k updates (d3rlpy vs this project) |",
+    where = (f"Minari {args.expert} + {args.behaviour}" if minari else args.env)
+    ci_words = ("a 95% t interval over the seeds" if len(seeds) > 1 else
+                "a 95% interval over the evaluation episodes" if minari else
+                "a 95% interval over the 1,000 paired evaluation episodes")
+    print(f"\n{where}, seeds {seeds}, {rows[0]['transitions']} training transitions (seed {seeds[0]}); "
+          f"{metric} ({better} is better, ± {ci_words})\n")
+    name = "normalised score" if minari else "regret"
+    lines = [f"| method | steps | d3rlpy 2.8.1 {name} | this project {name} | s / 1k updates, d3rlpy vs this project |",
              "|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {r['d3rlpy_regret']:.4f} ± {r['d3rlpy_regret_ci']:.4f} | "
-                     f"{r['project_regret']:.4f} ± {r['project_regret_ci']:.4f} | {r['d3rlpy_s_per_1k']:.1f} vs "
-                     f"{r['project_s_per_1k']:.1f} |")
+        peer = (f"{r[f'd3rlpy_{metric}']:.4g} ± {r[f'd3rlpy_{metric}_ci']:.3g}" if f"d3rlpy_{metric}" in r else "–")
+        peer_s = f"{r['d3rlpy_s_per_1k']:.1f}" if "d3rlpy_s_per_1k" in r else "–"
+        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {peer} | {r[f'project_{metric}']:.4g} ± "
+                     f"{r[f'project_{metric}_ci']:.3g} | {peer_s} vs {r['project_s_per_1k']:.1f} |")
     print("\n".join(lines))
     (out / "tables.md").write_text("\n".join(lines) + "\n")
-    publish_study("peer_d3rlpy", out / "tables.md", docs_dir_from_args(args.docs_dir), seeds=[args.seed],
+    if minari or args.no_peer or args.set:  # the published table is the LQR exp1 comparison at the defaults
+        return
+    publish_study("peer_d3rlpy", out / "tables.md", docs_dir_from_args(args.docs_dir), seeds=seeds,
                   budget=", ".join(f"{r['steps']} updates ({LABELS[r['algo']]})" for r in rows) + " in both libraries",
-                  ci="a 95% interval over the 1,000 paired evaluation episodes",
-                  argv=None if argv is None else [sys.argv[0], *argv])
+                  ci=ci_words, argv=None if argv is None else [sys.argv[0], *argv])
 
 
 if __name__ == "__main__":
