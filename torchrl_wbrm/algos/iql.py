@@ -35,7 +35,8 @@ class IQLConfig:
             not the paper's 3e-4, which is set for 10⁶ updates (LQR exp1, 1,000 updates: regret 0.18 against
             0.029; README, "Against a peer library"). τ defaults to 0.01, not the project's 0.05.
             IQL chains its value targets: V ← expectile of the target Q ← r + γ V. A fast target (τ = 0.05)
-            likely lets that chain inflate the advantages of D's random actions, and the actor then clones them. Measured on
+            likely lets that chain inflate the advantages of D's random actions, and the actor then clones
+            them. Measured on
             Pendulum-v1 (3 expert + 300 behaviour episodes, 10% of them the expert's; 3,000 updates, seed 0), as a
             normalised score: −6 at τ = 0.05, 58 at 0.01, 86 at the paper's and d3rlpy's 0.005; d3rlpy scores 93.
             0.005 is too slow for short budgets: at 1,000 updates on LQR exp1, ``tests/test_baselines.py``'s
