@@ -228,7 +228,7 @@ def test_the_printed_resume_command_works_as_printed(tmp_path):
     last = err.strip().splitlines()[-1]  # one line, naming the stage and step its checkpoint holds
     assert last.startswith("SIGINT received: stopped in stage 'q' at step ") and "Traceback" not in err, err[-2000:]
     (checkpoint,) = tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*/checkpoint.pt")
-    step = torch.load(checkpoint, weights_only=False)["state"]["step"]
+    step = torch.load(checkpoint, weights_only=True)["state"]["step"]
     assert step > 0 and f"at step {step}," in last, (step, last)
     command = last.split("Resume with: ", 1)[1]
     assert command.startswith(f"python {ROOT / 'recipes' / 'wbrm_offline.py'} resume=") and "_seed3" in command

@@ -96,8 +96,8 @@ def test_wbrm_offline_resume_continues_exactly(tmp_path):
                "plots=false")
     run_recipe("wbrm_offline.py", *TINY_LQR, constant, "q.steps=30", "checkpoint_every=10", f"resume={b}",
                "plots=false")
-    ca = torch.load(a / "checkpoint.pt", weights_only=False)["q_loss"]
-    cb = torch.load(b / "checkpoint.pt", weights_only=False)["q_loss"]
+    ca = torch.load(a / "checkpoint.pt", weights_only=True)["q_loss"]
+    cb = torch.load(b / "checkpoint.pt", weights_only=True)["q_loss"]
     assert all(torch.equal(ca[k], cb[k]) for k in ca)
 
 

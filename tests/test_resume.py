@@ -176,7 +176,7 @@ def test_non_finite_loss_stops_the_run_and_keeps_the_last_finite_checkpoint(tmp_
     saved = strict_json(tmp_path / "results.json")  # valid JSON: no bare NaN
     assert saved["status"] == "diverged" and saved["diverged"]["figure"] == d["figure"]
     strict_json(tmp_path / "history.json")
-    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert ckpt["state"]["step"] == d["checkpoint_step"] < d["step"]
     assert all(torch.isfinite(v).all() for v in ckpt["q_loss"].values() if v.is_floating_point())
 

@@ -130,7 +130,7 @@ def test_two_recipe_runs_into_one_directory_one_is_refused(tmp_path):
 
     results = json.loads((run_dir / "results.json").read_text())
     assert results["config"]["q"]["lr"] == winner
-    assert torch.load(run_dir / "checkpoint.pt", weights_only=False)["config"]["q"]["lr"] == winner
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["config"]["q"]["lr"] == winner
     assert f"q.lr={winner}" in (run_dir / ".hydra" / "overrides.yaml").read_text()
 
 

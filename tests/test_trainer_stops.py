@@ -93,7 +93,7 @@ def test_interrupt_during_the_final_evaluation_stops_at_once_and_resumes_exactly
                                              r"40, checkpoint written to .*resume=") as err:
         trainer.run()
     assert time.perf_counter() - start < 30 and err.value.during == "evaluation"
-    ckpt = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
     assert ckpt["state"] == {"stage": "q", "step": 40, "eval_pending": 40}
     assert not (tmp_path / "cut" / "results.json").exists()
 
