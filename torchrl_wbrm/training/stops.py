@@ -117,42 +117,23 @@ def first_non_finite(figures: dict) -> tuple[str, float] | None:
     """The first ``(name, value)`` among scalar tensors/floats of ``figures`` that is NaN or ±inf.
 
     CPU scalars are read one by one (``.item()``: no device to wait for, and cheaper than stacking them); where one
-    of them lives on an accelerator, they are all stacked and read in one host sync."""
-    read = []
-    for name, value in figures.items():
-        if isinstance(value, torch.Tensor):
-            if value.numel() != 1:
-                continue
-            if value.device.type != "cpu" or value.is_complex():
-                return _first_non_finite_stacked(figures)
-            read.append((name, value.item()))
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            read.append((name, value))
-    for name, value in read:
-        if not math.isfinite(value):
-            return name, float(value)
-    return None
-
-
-def _first_non_finite_stacked(figures: dict) -> tuple[str, float] | None:
-    """:func:`first_non_finite` with every scalar stacked in float64 on the host and read in one sync."""
-    names, values = [], []
-    for name, value in figures.items():
-        if isinstance(value, torch.Tensor):
-            if value.numel() == 1:
-                names.append(name)
-                values.append(value.detach().reshape(()).to(torch.float64, copy=False))
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            names.append(name)
-            values.append(torch.tensor(float(value), dtype=torch.float64))
-    if not values:
+    of them lives on an accelerator, they are all stacked in float64 and read in one host sync."""
+    scalars = [(name, value) for name, value in figures.items()
+               if (isinstance(value, torch.Tensor) and value.numel() == 1)
+               or (isinstance(value, (int, float)) and not isinstance(value, bool))]
+    if not any(isinstance(v, torch.Tensor) and (v.device.type != "cpu" or v.is_complex()) for _, v in scalars):
+        for name, value in scalars:
+            value = value.item() if isinstance(value, torch.Tensor) else value
+            if not math.isfinite(value):
+                return name, float(value)
         return None
-    stacked = torch.stack([v.cpu() for v in values])
+    stacked = torch.stack([value.detach().reshape(()).to(torch.float64).cpu() if isinstance(value, torch.Tensor)
+                           else torch.tensor(float(value), dtype=torch.float64) for _, value in scalars])
     finite = torch.isfinite(stacked)
     if bool(finite.all()):
         return None
     i = int((~finite).nonzero()[0])
-    return names[i], float(stacked[i])
+    return scalars[i][0], float(stacked[i])
 
 
 def non_finite_parameter(*modules) -> str | None:

@@ -613,12 +613,13 @@ class WBRMTrainer:
                 "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
                 **({k: v for k, v in ratio_records[-1].items() if k.startswith("ratio_")} if ratio_records else {}),
             },
-            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")},
-                     # env.minari.expert_episodes: which of the expert dataset's episodes this seed drew
-                     **{k: v for k, v in self.datasets.metadata.items() if k == "expert_episode_ids" and v is not None}},
+            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
             "data_seconds": self.data_seconds,
             "config": self.config_record(),
         }
+        drawn = self.datasets.metadata.get("expert_episode_ids")
+        if drawn is not None:  # env.minari.expert_episodes: which of the expert dataset's episodes this seed drew
+            results["data"]["expert_episode_ids"] = drawn
         if self.ratio_network is not None and ratio_records:
             best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
             if best:
