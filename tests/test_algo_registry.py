@@ -62,7 +62,7 @@ def test_no_yaml_shadows_the_algo_nodes():
 def test_baselines_config_holds_every_algo_with_settings():
     fields = {f.name: f.type for f in dataclasses.fields(BaselinesConfig)}
     assert fields == {n: s.config for n, s in ALGOS.items() if s.config is not None}
-    assert set(fields) == {"td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"}
+    assert set(fields) == {"bc", "td3bc", "ddpg", "cql", "iql", "dqn", "fqi", "mabo"}
 
 
 @pytest.fixture

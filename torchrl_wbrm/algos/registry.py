@@ -27,7 +27,9 @@ class AlgoSpec:
             ``algo/<name>``), or ``None`` when it has none of its own.
         validate: ``validate(settings, key)`` checks the values a type cannot (``key`` is ``"baselines.<name>"``, for
             the message); raises ``ValueError`` naming the setting.
-        fits_ratio: stage 1 (the density ratio ŵ) runs before it when ``ratio.source=learned``.
+        fits_ratio: stage 1 (the density ratio ŵ) runs before it when ``ratio.source=learned``: ``True``, or a
+            function of the run's config saying whether it does (``bc`` fits ŵ only to weight what it clones,
+            ``baselines.bc.data=weighted``); :meth:`fits_ratio_for` reads either.
         loss, reference: one line each (Markdown) for the docs' table.
         loss_title: the title of the training-loss panel of ``training_curve.png``.
     """
@@ -36,7 +38,7 @@ class AlgoSpec:
     build: Callable
     config: type | None = None
     validate: Callable[[Any, str], None] | None = None
-    fits_ratio: bool = False
+    fits_ratio: bool | Callable[[Any], bool] = False
     loss: str = ""
     reference: str = ""
     loss_title: str = ""
@@ -44,12 +46,16 @@ class AlgoSpec:
     def __call__(self, context):
         return self.build(context)
 
+    def fits_ratio_for(self, cfg) -> bool:
+        """Whether stage 1 runs before this algo with the run's config ``cfg`` (:attr:`fits_ratio`)."""
+        return bool(self.fits_ratio(cfg) if callable(self.fits_ratio) else self.fits_ratio)
+
 
 #: name -> :class:`AlgoSpec`, in registration order (``ALGOS[name](context)`` builds the algo).
 ALGOS: dict[str, AlgoSpec] = {}
 
 
-def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio: bool = False, loss: str = "",
+def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio=False, loss: str = "",
                   reference: str = "", loss_title: str = "") -> Callable:
     """Decorator: register ``build(context) -> Algo`` under ``name`` (returns the builder unchanged).
 

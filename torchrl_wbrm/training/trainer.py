@@ -9,9 +9,9 @@ pieces (:class:`~torchrl_wbrm.ratio.DensityRatioFitter`, stepped and evaluated f
 
 Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.algos` (one file per algorithm)
 builds each method's loss, optimisers, step function and evaluated policy; stage 1 runs only for an algo registered
-with ``fits_ratio`` (``wbrm``) and a learned ratio. Everything env-specific (the data, the action box, γ, the
-evaluator and the ground truth) is the env's :class:`~torchrl_wbrm.data.tasks.Task`: the trainer never asks which env
-it runs.
+with ``fits_ratio`` (``wbrm``; ``bc`` with ``baselines.bc.data=weighted``) and a learned ratio. Everything
+env-specific (the data, the action box, γ, the evaluator and the ground truth) is the env's
+:class:`~torchrl_wbrm.data.tasks.Task`: the trainer never asks which env it runs.
 
 Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
 evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
@@ -217,7 +217,7 @@ class WBRMTrainer:
         rc = self.cfg.ratio
         self.ratio_network = None
         self.ratio_fitter: DensityRatioFitter | None = None
-        if rc.source != "learned" or not get_algo(self.cfg.algo).fits_ratio:
+        if rc.source != "learned" or not get_algo(self.cfg.algo).fits_ratio_for(self.cfg):
             return
         self.ratio_network = DensityRatioNetwork(
             self.observation_dim,
