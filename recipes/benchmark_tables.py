@@ -5,6 +5,13 @@
     python recipes/benchmark_tables.py --algos wbrm brm td3bc iql bc --seeds 5 --budgets 1 3 10
     python recipes/benchmark_tables.py --quick                                # a smoke version (CI): tiny data
     python recipes/benchmark_tables.py --report-only                          # rebuild tables.md from finished runs
+    python recipes/benchmark_tables.py --few-demonstrations --tasks pendulum --expert-episodes 3 --expert-shares 10
+
+With ``--few-demonstrations`` the table is the few-demonstration one (:func:`few_demonstration_cells`): per task,
+``S^e`` = ``--expert-episodes`` episodes of the expert pool (``env.minari.expert_episodes``, drawn by each seed) and
+``D`` a ``behaviour-expert<pp>-v0`` set (``--expert-shares``), every method of :data:`FEW_DEMONSTRATION_METHODS` on
+it at the default budget; ``tables.md`` gives per cell and method the normalised score (mean ± 95% CI and each
+seed's) and the wall seconds per run (``--out`` default ``results/few_demonstrations``).
 
 Every run is the main recipe with the dataset keys only (``env=minari env.minari.expert=... env.minari.behaviour=...``)
 plus ``algo=<name>``; ``--budgets`` multiplies the env's default ``q.steps`` (and ``q.eval_every``), to check that a
@@ -27,6 +34,22 @@ sys.path.insert(0, str(ROOT))  # a clone's recipes run without installing (the p
 
 LABELS = ("task", "algo", "budget")
 
+#: the few-demonstration table's rows: name -> the overrides after the dataset keys (every method at the default budget)
+FEW_DEMONSTRATION_METHODS = {
+    "wbrm": ["algo=wbrm"],                                   # the default recipe
+    "brm": ["algo=brm"],                                     # the same with ŵ ≡ 1
+    "bc": ["algo=bc"],                                       # cloning S^e
+    "bc_union": ["algo=bc", "baselines.bc.data=union"],      # cloning S^e ∪ D
+    # cloning S^e ∪ D, D's rows weighted by the untempered ŵ (as ISW-BC weights by its ratio)
+    "bc_weighted": ["algo=bc", "baselines.bc.data=weighted", "ratio.temper=1"],
+    "td3bc": ["algo=td3bc"],
+    "iql": ["algo=iql"],
+    "cql": ["algo=cql"],
+    "bc_oracle": ["algo=bc", "baselines.bc.data=oracle"],    # cloning S^e and D's true expert episodes
+}
+
+FEW_LABELS = ("task", "cell", "method")
+
 
 def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_path: Path, namespace: str,
                 base_steps: int, base_eval_every: int) -> list[dict]:
@@ -43,6 +66,63 @@ def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_pat
                     overrides += [f"q.steps={budget * base_steps}", f"q.eval_every={budget * base_eval_every}"]
                 cells.append({"task": task, "algo": algo, "budget": f"x{budget}", "overrides": overrides})
     return cells
+
+
+def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares: list[str], methods: list[str],
+                            data_path: Path, namespace: str) -> list[dict]:
+    """Every (task, S^e size, expert share of D, method) cell: ``S^e`` = ``n`` episodes of the task's expert pool
+    drawn by the seed, ``D`` its ``behaviour-expert<pp>-v0`` set, the method's overrides
+    (:data:`FEW_DEMONSTRATION_METHODS`); the cell label is ``se<n>_expert<pp>``."""
+    from torchrl_wbrm.data.benchmark import few_demonstration_ids
+
+    unknown = [m for m in methods if m not in FEW_DEMONSTRATION_METHODS]
+    if unknown:
+        raise ValueError(f"--methods {' '.join(unknown)}: not a method of the few-demonstration table; choose from "
+                         f"{', '.join(FEW_DEMONSTRATION_METHODS)}.")
+    cells = []
+    for task in tasks:
+        ids = few_demonstration_ids(task, namespace)
+        for n in expert_episodes:
+            for share in shares:
+                data = ["env=minari", f"env.minari.data_path={data_path}", f"env.minari.expert={ids['expert_pool']}",
+                        f"env.minari.expert_episodes={n}", f"env.minari.behaviour={ids[f'behaviour_expert{share}']}",
+                        "logger=none"]
+                for method in methods:
+                    cells.append({"task": task, "cell": f"se{n}_expert{share}", "method": method,
+                                  "overrides": data + FEW_DEMONSTRATION_METHODS[method]})
+    return cells
+
+
+def few_demonstrations_report(out: Path) -> str:
+    """``tables.md`` of the few-demonstration table: per task, cell and method (in the order of
+    :data:`FEW_DEMONSTRATION_METHODS`), the normalised score as mean ± 95% CI over the seeds and each seed's, the
+    flags and the wall seconds per run."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+    from torchrl_wbrm.training.reporting import ci_cell, load_results, split_by_status
+
+    records, excluded = split_by_status(load_results(out))
+    rows: dict[tuple, list[dict]] = {}
+    for rec in records:
+        study = rec.get("study", {})
+        if "method" in study:
+            rows.setdefault((study.get("task"), study.get("cell"), study.get("method")), []).append(rec)
+    order = list(FEW_DEMONSTRATION_METHODS)
+    lines = ["| task | cell | method | seeds | normalised score | per seed | flagged | wall s / run |",
+             "|---|---|---|---|---|---|---|---|"]
+    for key in sorted(rows, key=lambda k: (str(k[0]), str(k[1]), order.index(k[2]) if k[2] in order else len(order))):
+        recs = sorted(rows[key], key=lambda r: r.get("seed", 0))
+        per_seed = ", ".join(f"{r['seed']}: {r['final']['normalised_score']:.1f}" for r in recs
+                             if isinstance(r.get("final", {}).get("normalised_score"), (int, float)))
+        flags = sorted({f for r in recs for f in r.get("flags", [])})
+        flagged = sum(1 for r in recs if r.get("flags"))
+        wall = [r["wall_seconds"] for r in recs if isinstance(r.get("wall_seconds"), (int, float))]
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {len(recs)} | "
+                     f"{ci_cell(recs, 'final.normalised_score', 1)} | {per_seed} | "
+                     f"{flagged}{' (' + ', '.join(flags) + ')' if flags else ''} | "
+                     f"{f'{mean_ci(wall).mean:.0f}' if wall else '–'} |")
+    if excluded:
+        lines.append(f"\n{len(excluded)} run(s) excluded (not finished: diverged or interrupted).")
+    return "\n".join(lines) + "\n"
 
 
 def benchmark_report(out: Path) -> str:
@@ -86,8 +166,16 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--budgets", nargs="+", type=int, default=[1], help="multiples of the default q.steps")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", default="results/benchmark")
+    parser.add_argument("--out", default=None, help="default: results/benchmark (results/few_demonstrations)")
     parser.add_argument("--quick", action="store_true", help="tiny datasets and budgets (a smoke run)")
+    parser.add_argument("--few-demonstrations", action="store_true",
+                        help="the few-demonstration table: S^e a few episodes of the expert pool, D a behaviour set "
+                             "with a share of expert episodes, every method of FEW_DEMONSTRATION_METHODS")
+    parser.add_argument("--expert-episodes", nargs="+", type=int, default=[3], help="S^e's episodes (few-demos)")
+    parser.add_argument("--expert-shares", nargs="+", default=["10"], choices=["05", "10", "20"],
+                        help="the expert share of D in percent, behaviour-expert<pp>-v0 (few-demonstrations)")
+    parser.add_argument("--methods", nargs="+", default=list(FEW_DEMONSTRATION_METHODS),
+                        help="the few-demonstration table's rows")
     parser.add_argument("--report-only", action="store_true")
     from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
@@ -99,32 +187,44 @@ def main(argv=None) -> None:
     from torchrl_wbrm.data.tasks import MinariTask
     from torchrl_wbrm.training.runs import run_cells
 
-    out, data_path = Path(args.out).resolve(), Path(args.data_path).resolve()
+    few = args.few_demonstrations
+    out = Path(args.out or ("results/few_demonstrations" if few else "results/benchmark")).resolve()
+    data_path = Path(args.data_path).resolve()
     if not args.report_only:
-        missing = [t for t in args.tasks
-                   if not (minari_data_root(data_path) / benchmark_ids(t, args.namespace)["behaviour"]).exists()]
+        from torchrl_wbrm.data.benchmark import few_demonstration_ids
+
+        made = (lambda t: few_demonstration_ids(t, args.namespace)["expert_pool"]) if few else (
+            lambda t: benchmark_ids(t, args.namespace)["behaviour"])
+        missing = [t for t in args.tasks if not (minari_data_root(data_path) / made(t)).exists()]
         if missing:
             sizes = dict(expert_episodes=2, behaviour_episodes=10, reference_episodes=3) if args.quick else {}
             rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)
             print(f"wrote the datasets of {', '.join(r['task'] for r in rows)} under {data_path}")
         steps, eval_every = (MinariTask.TRAINING_DEFAULTS[k] for k in ("q.steps", "q.eval_every"))
-        cells = build_cells(args.tasks, args.algos, args.budgets, data_path, args.namespace, steps, eval_every)
+        if few:
+            cells = few_demonstration_cells(args.tasks, args.expert_episodes, args.expert_shares, args.methods,
+                                            data_path, args.namespace)
+        else:
+            cells = build_cells(args.tasks, args.algos, args.budgets, data_path, args.namespace, steps, eval_every)
         budget = (["ratio.steps=20", "q.steps=20", "q.eval_every=10", "eval.episodes=2", "eval.train_episodes=1",
                    "plots=false"] if args.quick else [])
         if args.quick:  # the budget goes first, so a cell's own q.steps (its multiple) would win: drop it
             for cell in cells:
                 cell["overrides"] = [o for o in cell["overrides"] if not o.startswith(("q.steps=", "q.eval_every="))]
-        run_cells(cells, range(args.seeds), budget, out, jobs=args.jobs, labels=LABELS)
-    table = benchmark_report(out)
+        run_cells(cells, range(args.seeds), budget, out, jobs=args.jobs, labels=FEW_LABELS if few else LABELS)
+    table = few_demonstrations_report(out) if few else benchmark_report(out)
     (out / "tables.md").parent.mkdir(parents=True, exist_ok=True)
     (out / "tables.md").write_text(table)
     print(table)
     from torchrl_wbrm.training.reporting import load_results
 
-    publish_study("benchmark", out / "tables.md", docs_dir_from_args(args.docs_dir, args.quick),
+    budget = ("the task's default `q.steps`" if few else
+              ", ".join(f"×{b}" for b in args.budgets) + " the task's default `q.steps`")
+    publish_study("few_demonstrations" if few else "benchmark", out / "tables.md",
+                  docs_dir_from_args(args.docs_dir, args.quick),
                   seeds={r["seed"] for r in load_results(out) if "seed" in r},
                   argv=None if argv is None else [sys.argv[0], *argv],
-                  budget=", ".join(f"×{b}" for b in args.budgets) + " the task's default `q.steps`"
+                  budget=budget
                   + (" (`--quick`: `ratio.steps=20`, `q.steps=20`, 2 evaluation episodes)" if args.quick else ""))
 
 

@@ -233,3 +233,55 @@ def test_benchmark_tables_quick_writes_the_table(tmp_path):
     assert "env.minari.expert=benchmark/pendulum/expert-v0" not in str(results["config"])  # resolved config saved
     assert results["config"]["env"]["minari"]["expert"] == "benchmark/pendulum/expert-v0"
     assert results["config"]["q"]["expert_bc_alpha"] in (0.0, 1.0)
+
+
+def test_the_behaviour_sets_say_which_episodes_are_the_experts(pendulum):
+    """Each dataset's metadata names its expert episodes (Minari ids, as D's "episode"), and a run's data carry them
+    (``baselines.bc.data=oracle`` clones those); a dataset that does not say gives None."""
+    from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets
+
+    path, row = pendulum
+    for name, share in EXPERT_SHARES.items():
+        ds = _load(path, f"benchmark/pendulum/{name}")
+        assert ds.storage.metadata["expert_episode_ids"] == expert_episode_indices(20, share)
+    assert _load(path, row["behaviour"]).storage.metadata["expert_episode_ids"] == [4, 9, 14, 19]
+    assert _load(path, row["medium"]).storage.metadata["expert_episode_ids"] == []
+    config = MinariDataConfig(expert=row["expert_pool"], behaviour=row["behaviour_expert10"], data_path=str(path),
+                              expert_episodes=1)
+    datasets = make_minari_datasets(config, seed=0)
+    assert datasets.metadata["behaviour_expert_episode_ids"] == [9, 19]
+    meta = path / "benchmark" / "pendulum" / "behaviour-expert10-v0" / "data" / "metadata.json"
+    saved = json.loads(meta.read_text())
+    meta.write_text(json.dumps({k: v for k, v in saved.items() if k != "expert_episode_ids"}))
+    try:
+        assert make_minari_datasets(config, seed=0).metadata["behaviour_expert_episode_ids"] is None
+    finally:
+        meta.write_text(json.dumps(saved))
+
+
+def test_few_demonstration_table_quick(pendulum, tmp_path):
+    """``recipes/benchmark_tables.py --few-demonstrations --quick`` on the fixture's data: one row per method of the
+    cell (S^e one pool episode, D the 10% set); the ŵ-weighted cloning fits stage 1, the oracle clones D's expert
+    episodes with S^e; an unknown method is refused naming the choices."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    args = ["--quick", "--few-demonstrations", "--tasks", "pendulum", "--expert-episodes", "1", "--seeds", "1",
+            "--jobs", "1", "--data-path", str(pendulum[0]), "--out", str(tmp_path / "out")]
+    with pytest.raises(ValueError, match="--methods sac: not a method of the few-demonstration table"):
+        module.main([*args, "--methods", "sac"])
+    module.main([*args, "--methods", "bc_weighted", "bc_oracle"])
+    table = (tmp_path / "out" / "tables.md").read_text()
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| pendulum |")]
+    assert [(r[1], r[2], r[3]) for r in rows] == [("se1_expert10", "bc_weighted", "1"),
+                                                  ("se1_expert10", "bc_oracle", "1")]
+    assert all(float(r[4]) == float(r[4]) for r in rows)  # a finite normalised score
+    out = tmp_path / "out" / "pendulum" / "se1_expert10"
+    weighted = json.loads((out / "bc_weighted" / "seed0" / "results.json").read_text())
+    assert weighted["ratio"]["source"] == "learned" and weighted["ratio"]["steps_run"] > 0
+    oracle = json.loads((out / "bc_oracle" / "seed0" / "results.json").read_text())
+    assert oracle["ratio"]["source"] == "none" and oracle["config"]["baselines"]["bc"]["data"] == "oracle"

@@ -170,6 +170,11 @@ def expert_episode_indices(episodes: int, share: float) -> list[int]:
     return [(j + 1) * episodes // k - 1 for j in range(k)]
 
 
+def _expert_ids(ids) -> dict:
+    """A dataset's ``metadata.json`` entry naming its expert episodes (Minari ids; ``baselines.bc.data=oracle``)."""
+    return {"expert_episode_ids": sorted(int(i) for i in ids)}
+
+
 def _policies(task: BenchmarkTask, space):
     low, high = np.asarray(space.low, dtype=np.float32), np.asarray(space.high, dtype=np.float32)
     std = 0.05 * (high - low)
@@ -281,11 +286,13 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
     common = dict(data_path=data_path, env=task.env_id, eval_env=task.env_id, ref_min_score=ref_min,
                   ref_max_score=ref_max, num_episodes_average_score=reference_episodes)
     write_minari_dataset(ids["expert"], expert_data, algorithm_name=f"{task.expert_description}; {noise}",
-                         description=f"torchrl_wbrm benchmark: {task.env_id} expert, {n_expert} episodes", **common)
+                         description=f"torchrl_wbrm benchmark: {task.env_id} expert, {n_expert} episodes",
+                         metadata=_expert_ids(range(n_expert)), **common)
     write_minari_dataset(
         ids["behaviour"], behaviour,
         algorithm_name=f"uniform random actions; every {EXPERT_EVERY}th episode the expert ({noise})",
-        description=f"torchrl_wbrm benchmark: {task.env_id} behaviour, {n_behaviour} episodes", **common)
+        description=f"torchrl_wbrm benchmark: {task.env_id} behaviour, {n_behaviour} episodes",
+        metadata=_expert_ids(i for i, kind in enumerate(behaviour_kinds) if kind == "expert"), **common)
 
     def make_up(dataset_id, episodes, expert_eps, expert_steps):
         returns = _returns(episodes)
@@ -304,7 +311,7 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
         write_minari_dataset(
             extra_ids["expert_pool"], pool, algorithm_name=f"{task.expert_description}; {noise}",
             description=f"torchrl_wbrm benchmark: {task.env_id} expert pool, {n_pool} episodes (draw a few with "
-                        f"env.minari.expert_episodes)", **common)
+                        f"env.minari.expert_episodes)", metadata=_expert_ids(range(n_pool)), **common)
         datasets.append(make_up(extra_ids["expert_pool"], pool, n_pool, _steps(pool)))
         for dataset_name, share in EXPERT_SHARES.items():
             chosen = set(expert_episode_indices(n_behaviour, share))
@@ -315,7 +322,7 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
                 algorithm_name=f"uniform random actions; {len(chosen)} of {n_behaviour} episodes the expert "
                                f"({noise}), evenly spread",
                 description=f"torchrl_wbrm benchmark: {task.env_id} behaviour, {n_behaviour} episodes, "
-                            f"{100 * share:.0f}% of them the expert's", **common)
+                            f"{100 * share:.0f}% of them the expert's", metadata=_expert_ids(chosen), **common)
             datasets.append(make_up(dataset_id, episodes, len(chosen),
                                     _steps([episodes[i] for i in sorted(chosen)])))
         counter = [0]
@@ -325,7 +332,8 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
             extra_ids["medium"], medium,
             algorithm_name=f"every step the expert ({noise}) with probability {MEDIUM_EXPERT_PROBABILITY}, else "
                            f"uniform random actions",
-            description=f"torchrl_wbrm benchmark: {task.env_id} medium, {n_behaviour} episodes", **common)
+            description=f"torchrl_wbrm benchmark: {task.env_id} medium, {n_behaviour} episodes",
+            metadata=_expert_ids([]), **common)  # no episode is wholly the expert's
         datasets.append(make_up(extra_ids["medium"], medium, None, counter[0]))
 
     returns = {"random": _returns(random_ref), "behaviour": _returns(behaviour), "expert": _returns(expert_data)}

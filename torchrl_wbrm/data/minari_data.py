@@ -457,6 +457,9 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         "expert_dataset_episodes": expert_pool_episodes,
         "expert_episode_ids": (None if data.expert_episodes is None
                                else sorted(int(i) for i in torch.unique(expert["episode"]))),
+        # which of the behaviour dataset's episodes (Minari ids, as D's "episode") are the expert's, where the dataset
+        # says (metadata "expert_episode_ids", written by torchrl_wbrm.data.benchmark); None where it does not
+        "behaviour_expert_episode_ids": _recorded_expert_episodes(behaviour_ds),
         # Minari's reference scores (random actions, the expert), where the dataset records them: D4RL's normalised
         # score of the evaluated returns
         "ref_min_score": _reference_score(expert_ds, behaviour_ds, "ref_min_score"),
@@ -480,6 +483,12 @@ def _reference_score(expert_ds, behaviour_ds, key: str) -> float | None:
         if value is not None:
             return float(value)
     return None
+
+
+def _recorded_expert_episodes(dataset) -> list[int] | None:
+    """The ids of ``dataset``'s episodes that are the expert's, as its metadata records them (``None``: not said)."""
+    ids = dataset.storage.metadata.get("expert_episode_ids")
+    return None if ids is None else sorted(int(i) for i in ids)
 
 
 def _mean_return(data: TensorDictBase) -> float | None:
@@ -681,6 +690,7 @@ def write_minari_dataset(
     ref_min_score: float | None = None,
     ref_max_score: float | None = None,
     num_episodes_average_score: int = 100,
+    metadata: dict | None = None,
 ):
     """Write ``episodes`` as the Minari dataset ``dataset_id`` under ``data_path`` (default: Minari's data path).
 
@@ -690,6 +700,8 @@ def write_minari_dataset(
     env that gymnasium does not know (the LQR systems) needs ``observation_space`` and ``action_space`` instead.
     ``ref_min_score`` / ``ref_max_score`` (both or neither) are the returns of random actions and of the expert,
     Minari's reference scores for D4RL's normalised score (averaged over ``num_episodes_average_score`` episodes).
+    ``metadata``: more keys for the dataset's ``metadata.json`` (``MinariStorage.update_metadata``), e.g.
+    ``"expert_episode_ids"``, the ids of the episodes that are the expert's (:func:`make_minari_datasets` reads it).
     Returns the ``MinariDataset``.
     """
     import minari
@@ -711,12 +723,15 @@ def write_minari_dataset(
     with _minari_path(root), warnings.catch_warnings():  # Minari's advice on optional metadata (author e-mail, ...)
         warnings.filterwarnings("ignore", message=r".* is set to None", category=UserWarning)
         warnings.filterwarnings("ignore", message=r"env_spec is None", category=UserWarning)
-        return minari.create_dataset_from_buffers(
+        dataset = minari.create_dataset_from_buffers(
             dataset_id=dataset_id, buffer=buffers, env=env, eval_env=eval_env, algorithm_name=algorithm_name,
             observation_space=observation_space, action_space=action_space, description=description, author=author,
             ref_min_score=ref_min_score, ref_max_score=ref_max_score,
             num_episodes_average_score=num_episodes_average_score,
         )
+        if metadata:
+            dataset.storage.update_metadata(dict(metadata))
+        return dataset
 
 
 def transitions_to_episodes(data: TensorDictBase) -> list[dict]:
