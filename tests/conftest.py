@@ -19,6 +19,14 @@ def pytest_configure(config):
         torch.set_num_threads(1)
 
 
+def pytest_sessionfinish(session):
+    """Stop the fork server of :mod:`tests.forked`, if a test started one, and wait for it (its runs' CPU time then
+    counts with the worker's)."""
+    from tests import forked
+
+    forked.stop()
+
+
 def pytest_collection_modifyitems(config, items):
     """Files holding ``slow``-marked tests first, the most slow tests first; every other file keeps its place after.
 

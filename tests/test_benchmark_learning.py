@@ -98,22 +98,21 @@ def test_the_same_seed_gives_the_same_figures_in_two_processes(tmp_path):
     times aside). Across machines the figures can differ in the last bits (CPU kernels: see the reproducibility
     page of the docs), so this test compares two runs on the one machine it runs on."""
     import os
-    import subprocess
-    import sys
     from pathlib import Path
+
+    from tests.forked import run_forked
 
     row = make_benchmark_task("pendulum", tmp_path / "data", reference_episodes=5, expert_episodes=3,
                               behaviour_episodes=6, few_demonstrations=False)
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "wbrm_offline.py"
     env = {**os.environ, "WANDB_MODE": "offline", "MPLBACKEND": "Agg"}
     results = []
-    for name in ("first", "second"):
-        proc = subprocess.run(
-            [sys.executable, str(recipe), "env=minari", f"env.minari.expert={row['expert']}",
-             f"env.minari.behaviour={row['behaviour']}", f"env.minari.data_path={tmp_path / 'data'}",
-             "ratio.steps=100", "q.steps=200", "q.eval_every=100", "eval.episodes=3", "plots=false", "logger=none",
-             f"hydra.run.dir={tmp_path / name}"],
-            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    for name in ("first", "second"):  # each a process of its own (:mod:`tests.forked`)
+        proc = run_forked(
+            recipe, "env=minari", f"env.minari.expert={row['expert']}",
+            f"env.minari.behaviour={row['behaviour']}", f"env.minari.data_path={tmp_path / 'data'}",
+            "ratio.steps=100", "q.steps=200", "q.eval_every=100", "eval.episodes=3", "plots=false", "logger=none",
+            f"hydra.run.dir={tmp_path / name}", cwd=tmp_path, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr[-3000:]
         results.append(_results_without_times(tmp_path / name / "results.json"))
     first, second = results

@@ -22,8 +22,6 @@ import os
 import pickle
 import shutil
 import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -31,7 +29,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests import inprocess
+from tests import forked, inprocess
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.results import TEST_PAUSE_ENV
@@ -205,7 +203,7 @@ OVERRIDES = [
 ]
 #: what differs between two runs of one config: wall-clock times
 TIMES = ("wall_seconds", "data_seconds", "compile_seconds")
-RECIPE = [sys.executable, str(ROOT / "recipes" / "wbrm_offline.py")]
+RECIPE = ROOT / "recipes" / "wbrm_offline.py"
 
 
 def _env(pause: str | None = None) -> dict:
@@ -225,10 +223,10 @@ def _figures(run_dir: Path) -> dict:
             "history": json.loads((run_dir / "history.json").read_text())}
 
 
-def _run_until_paused(cmd: list[str], pause: str, cwd: Path, timeout: float = 300.0) -> subprocess.Popen:
-    """Start ``cmd`` with the hook set to ``pause``; return once it says it is paused there (then it waits)."""
-    proc = subprocess.Popen(cmd, cwd=cwd, env=_env(pause), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
+def _run_until_paused(overrides: list[str], pause: str, cwd: Path, timeout: float = 300.0) -> forked.ForkedProcess:
+    """Start the recipe with ``overrides`` in a process of its own (:mod:`tests.forked`) with the hook set to
+    ``pause``; return once it says it is paused there (then it waits)."""
+    proc = forked.popen_script(RECIPE, *overrides, cwd=cwd, env=_env(pause), stdout=False)
     paused, lines = threading.Event(), []
 
     def read():
@@ -264,7 +262,7 @@ def uninterrupted(tmp_path_factory):
 ])
 def test_sigkill_then_resume_gives_the_uninterrupted_figures(uninterrupted, tmp_path, point, written):
     run_dir = tmp_path / "run"
-    proc = _run_until_paused([*RECIPE, *OVERRIDES, f"hydra.run.dir={run_dir}"], point, tmp_path)
+    proc = _run_until_paused([*OVERRIDES, f"hydra.run.dir={run_dir}"], point, tmp_path)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=60)
     assert proc.returncode == -signal.SIGKILL

@@ -14,7 +14,6 @@ import hashlib
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from tests import inprocess
+from tests import forked, inprocess
 from torchrl_wbrm.data import datasets as datasets_module
 from torchrl_wbrm.data import minari_data
 from torchrl_wbrm.data.datasets import OfflineDatasets, check_finite, read_saved_dataset
@@ -175,18 +174,17 @@ CLI_CASES = {
 
 def _recipe(cwd: Path, overrides: list[str], data_path: str, *, process: bool = False) -> subprocess.CompletedProcess:
     """``python recipes/wbrm_offline.py <overrides>`` in ``cwd``: in this process (:mod:`tests.inprocess`), or, with
-    ``process``, as its own ``python`` exactly as a user starts it."""
+    ``process``, in a process of its own (:mod:`tests.forked`)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg", "MINARI_DATASETS_PATH": data_path}
     if not process:
         return inprocess.recipe(*overrides, cwd=cwd, env=env)
-    return subprocess.run([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), *overrides], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300)
+    return forked.run_forked(ROOT / "recipes" / "wbrm_offline.py", *overrides, cwd=cwd, env=env)
 
 
 @pytest.mark.parametrize("case", list(CLI_CASES))
 def test_the_command_refuses_bad_data_in_one_line_and_writes_nothing(case, bad_data, tmp_path):
     overrides, expected = CLI_CASES[case]
-    # one case as its own process, as a user starts it; the others in this process (the same code, 9 s less each)
+    # one case in a process of its own; the others in this process (the same code, without a process's imports)
     proc = _recipe(tmp_path, overrides(bad_data), bad_data["data_path"], process=case == "nan_reward")
     output = proc.stdout + proc.stderr
     assert proc.returncode != 0, output

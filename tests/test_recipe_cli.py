@@ -18,7 +18,7 @@ import sys
 import pytest
 import torch
 
-from tests import inprocess
+from tests import forked, inprocess
 from tests.references import ROOT
 
 #: a tiny LQR exp1 run of the recipe (seconds)
@@ -215,8 +215,8 @@ def test_the_printed_resume_command_works_as_printed(tmp_path):
                  "logger=none", "plots=false"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg",
            "PATH": f"{os.path.dirname(sys.executable)}{os.pathsep}{os.environ.get('PATH', '')}"}
-    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), *overrides], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # a process of its own, for the signal (:mod:`tests.forked`); the resume below is the printed command itself
+    proc = forked.popen_script(ROOT / "recipes" / "wbrm_offline.py", *overrides, cwd=tmp_path, env=env)
     deadline = time.time() + 180
     while not list(tmp_path.glob("outputs/wbrm_offline/lqr_exp1/*/checkpoint.pt")) and time.time() < deadline \
             and proc.poll() is None:
@@ -333,8 +333,11 @@ def test_a_config_error_is_one_line(tmp_path):
 
 @pytest.mark.slow
 def test_the_recipe_writes_no_empty_log(tmp_path):
-    # its own python: a library's INFO line goes to a handler bound to the real stream, which only a process shows
-    proc = recipe(*TINY, "logger=none", "plots=false", f"hydra.run.dir={tmp_path}", process=True)
+    # a process of its own (:mod:`tests.forked`): a library's INFO line goes to a handler bound to the real stream,
+    # which only a process shows
+    env = {**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline", "COLUMNS": "120"}
+    proc = forked.run_forked(ROOT / "recipes" / "wbrm_offline.py", *TINY, "logger=none", "plots=false",
+                             f"hydra.run.dir={tmp_path}", cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert not [p.name for p in tmp_path.glob("*.log") if p.stat().st_size == 0]
     assert "[INFO]" not in proc.stdout + proc.stderr

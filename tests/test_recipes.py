@@ -4,13 +4,12 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
-from tests import inprocess
+from tests import forked, inprocess
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,12 +46,11 @@ TINY_MC = [
 
 
 def run_recipe(script: str, *overrides: str, check: bool = True, process: bool = False) -> subprocess.CompletedProcess:
-    """``python recipes/<script> <overrides>``: in this process (:mod:`tests.inprocess`), or with ``process`` as its
-    own ``python``, exactly as a user starts it."""
+    """``python recipes/<script> <overrides>``: in this process (:mod:`tests.inprocess`), or with ``process`` in a
+    process of its own (:mod:`tests.forked`)."""
     env = {**os.environ, "WANDB_MODE": "offline", "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
     if process:
-        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *overrides], cwd=ROOT, env=env,
-                              capture_output=True, text=True, timeout=300)
+        proc = forked.run_forked(ROOT / "recipes" / script, *overrides, cwd=ROOT, env=env)
     else:
         proc = inprocess.run_script(ROOT / "recipes" / script, *overrides, cwd=ROOT, env=env)
     if check and proc.returncode != 0:
@@ -63,7 +61,7 @@ def run_recipe(script: str, *overrides: str, check: bool = True, process: bool =
 # lqr_exp1 runs every algo in tests/test_baselines.py; here one run per logger: wandb (offline) and the default csv
 @pytest.mark.parametrize("env_name, logger", [("lqr_exp2", "wandb"), ("lqr_exp3", "csv")])
 def test_wbrm_offline_lqr(tmp_path, env_name, logger):
-    # the wandb run as its own python (wandb starts a service process of its own), the csv one in this process
+    # the wandb run in a process of its own (wandb starts a service process of its own), the csv one in this one
     proc = run_recipe("wbrm_offline.py", f"env={env_name}", f"logger={logger}", *TINY_LQR, f"hydra.run.dir={tmp_path}",
                       process=logger == "wandb")
     results = json.loads((tmp_path / "results.json").read_text())

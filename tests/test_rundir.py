@@ -10,14 +10,13 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from omegaconf import open_dict
 
+from tests import forked
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig
@@ -115,11 +114,11 @@ def test_two_recipe_runs_into_one_directory_one_is_refused(tmp_path):
     winner's checkpoint, results and Hydra record, all of one run."""
     run_dir = tmp_path / "X"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-    procs = {lr: subprocess.Popen([sys.executable, str(ROOT / "recipes" / "wbrm_offline.py"), *TINY, f"q.lr={lr}",
-                                   f"hydra.run.dir={run_dir}"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
+    # two processes of their own (:mod:`tests.forked`), started together
+    procs = {lr: forked.popen_script(ROOT / "recipes" / "wbrm_offline.py", *TINY, f"q.lr={lr}",
+                                     f"hydra.run.dir={run_dir}", cwd=tmp_path, env=env)
              for lr in (0.001, 0.003)}
-    outcome = {lr: (proc.wait(timeout=300), proc.stderr.read()) for lr, proc in procs.items()}
+    outcome = {lr: (proc.returncode, err) for lr, proc in procs.items() for _, err in [proc.communicate(timeout=300)]}
     codes = sorted(code for code, _ in outcome.values())
     assert codes == [0, 1], outcome
     (winner,) = [lr for lr, (code, _) in outcome.items() if code == 0]

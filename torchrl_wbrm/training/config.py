@@ -6,6 +6,7 @@ again by :func:`validate_config` (allowed names, ranges), which names the settin
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, make_dataclass
 from typing import List, NamedTuple, Optional
@@ -28,6 +29,7 @@ __all__ = [
     "RatioConfig",
     "WBRMConfig",
     "config_as_dict",
+    "config_schema",
     "env_config",
     "prepare_config",
     "register_configs",
@@ -404,13 +406,24 @@ def resolve_defaults(cfg, task: Task | None = None):
     return cfg
 
 
+@functools.lru_cache(maxsize=None)
+def config_schema() -> DictConfig:
+    """The :class:`WBRMConfig` schema as an OmegaConf node, built once per process (building it costs about 20 ms
+    of CPU; ``OmegaConf.merge`` copies it and never changes it)."""
+    return OmegaConf.structured(WBRMConfig)
+
+
+def _merged_node(cfg) -> DictConfig:
+    """``cfg`` (a dataclass, a DictConfig or a dict) as a typed OmegaConf node of :class:`WBRMConfig`: a dataclass's
+    values checked against its field types, any other mapping merged on the schema (so unknown keys fail)."""
+    if isinstance(cfg, WBRMConfig):
+        return OmegaConf.structured(cfg)
+    return OmegaConf.merge(config_schema(), cfg)
+
+
 def merge_config(cfg) -> WBRMConfig:
     """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict, merged on the schema (so unknown keys fail)."""
-    if isinstance(cfg, WBRMConfig):
-        cfg = OmegaConf.structured(cfg)
-    elif not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg)
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), cfg))
+    return OmegaConf.to_object(_merged_node(cfg))
 
 
 def to_config(cfg, task: Task | None = None) -> WBRMConfig:
@@ -442,7 +455,7 @@ def config_as_dict(cfg, task: Task | None = None) -> dict:
     ``"config"`` in its checkpoint and ``results.json``. ``seeds`` appears only when set (a multi-seed run's), so a
     one-seed run's config reads as those saved before the key existed. ``task``: the env's task, when built
     already."""
-    out = OmegaConf.to_container(OmegaConf.structured(to_config(cfg, task)))
+    out = OmegaConf.to_container(resolve_defaults(_merged_node(cfg), task), resolve=True)
     if out.get("seeds") is None:
         out.pop("seeds", None)
     return out

@@ -10,7 +10,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, prepare_config
+from torchrl_wbrm.training.config import PreparedConfig, merge_config, prepare_config
 from torchrl_wbrm.training.resume import check_run_request
 from torchrl_wbrm.training.rundir import (
     RunDirClaim,
@@ -107,11 +107,7 @@ def take_prepared(run_dir) -> PreparedConfig | None:
 def _task_config(config):
     """The run's own config (without the ``hydra`` node) as a :class:`~torchrl_wbrm.training.config.WBRMConfig`."""
     task = OmegaConf.masked_copy(config, [k for k in config.keys() if k != "hydra"])
-    return OmegaConf.to_object(OmegaConf.merge(_schema(), task))
-
-
-def _schema():
-    return OmegaConf.structured(WBRMConfig)
+    return merge_config(task)
 
 
 def _set_run_dir(config, run_dir: Path) -> None:
