@@ -92,6 +92,27 @@ def test_resume_refuses_changed_settings(finished, overrides, named):
     assert snapshot(finished) == before
 
 
+def test_a_setting_added_after_a_run_was_saved_is_no_change_at_its_default():
+    """A saved config without a setting that exists now (the run was saved before it was added) matches a config
+    holding that setting at its default: resuming it and reusing its results are allowed. The same setting at another
+    value is a change, refused and named."""
+    from torchrl_wbrm.training.config import config_as_dict
+    from torchrl_wbrm.training.resume import changed_keys, check_finished_config
+
+    now = config_as_dict(tiny())
+    saved = json.loads(json.dumps(now))
+    del saved["ratio"]["aggregate"]  # settings added after the run was saved
+    del saved["baselines"]["bc"]
+    assert changed_keys(saved, now) == {}
+    check_finished_config(Path("results.json"), saved, now)
+    other = json.loads(json.dumps(now))
+    other["ratio"]["aggregate"] = "episode"
+    assert changed_keys(saved, other) == {"ratio.aggregate": (None, "episode")}
+    with pytest.raises(ValueError, match="ratio.aggregate: None -> 'episode'"):
+        check_finished_config(Path("results.json"), saved, other)
+    assert changed_keys(now, saved)  # a setting the new config lacks is still a change
+
+
 def test_resume_refuses_a_smaller_budget(finished):
     before = snapshot(finished)
     with pytest.raises(ValueError, match="q.steps=20 is smaller than the 40 steps already trained"):

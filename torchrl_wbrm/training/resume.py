@@ -4,12 +4,15 @@ a run's Hydra record names only the recipe's settings.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import fields
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.training.checkpoint import read_checkpoint
-from torchrl_wbrm.training.config import WBRMConfig, config_as_dict
+from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, config_schema
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir
 
 __all__ = ["CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES", "changed_keys",
@@ -59,13 +62,26 @@ def _flatten(node, prefix: str = "") -> dict:
     return {prefix[:-1]: node}
 
 
+@functools.lru_cache(maxsize=1)
+def _setting_defaults() -> dict:
+    """Every setting's default value, flattened to dotted keys (the schema's own values: null where an env's task
+    resolves it)."""
+    return _flatten(OmegaConf.to_container(config_schema()))
+
+
 def changed_keys(old: dict, new: dict) -> dict[str, tuple]:
-    """Dotted key -> ``(old, new)`` for every leaf that differs between two nested config dicts."""
+    """Dotted key -> ``(old, new)`` for every leaf that differs between two nested config dicts.
+
+    A setting the old config lacks and the new one holds at its default is no change: the old config was saved
+    before the setting existed, and a setting is added with the behaviour it had before as its default."""
     a, b = _flatten(old), _flatten(new)
     missing = object()
+    defaults = _setting_defaults()
     out = {}
     for key in sorted(set(a) | set(b)):
         va, vb = a.get(key, missing), b.get(key, missing)
+        if va is missing and key in defaults and vb == defaults[key]:
+            continue
         if va != vb:
             out[key] = (None if va is missing else va, None if vb is missing else vb)
     return out
