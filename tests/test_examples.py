@@ -70,13 +70,12 @@ def test_wbrm_in_a_ddpg_loop_beats_the_behaviour_policy(outputs, regrets):
 
 @pytest.mark.slow
 def test_discrete_wbrm_on_cartpole_beats_the_behaviour_data(outputs):
-    """WeightedBellmanLoss with a QValueActor: the greedy policy's return is at least twice the behaviour data's;
-    TorchRL's DQNLoss on the same data is reported beside it and beats the data too."""
+    """WeightedBellmanLoss with a QValueActor: the greedy policy's return is at least twice the behaviour data's
+    (``--quick`` trains it alone; the full run reports TorchRL's DQNLoss on the same data beside it)."""
     text = outputs["wbrm_dqn_cartpole"]
     behaviour = float(re.search(r"behaviour return ([0-9.]+)", text).group(1))
     wbrm = _figure(text, "WeightedBellmanLoss", "greedy return")
-    dqn = _figure(text, "DQNLoss", "greedy return")
-    assert behaviour < 100 and wbrm > 2 * behaviour and dqn > behaviour, (behaviour, wbrm, dqn)
+    assert behaviour < 100 and wbrm > 2 * behaviour, (behaviour, wbrm)
 
 
 @pytest.mark.slow
@@ -88,14 +87,13 @@ def test_weighted_ddpg_learns(outputs, regrets):
 
 @pytest.mark.slow
 def test_weighted_iql_learns(outputs, regrets):
-    """TorchRL's IQLLoss with ŵ through WeightedLoss, and its unweighted twin: both well below the behaviour mean's
-    regret (the actors start near the zero action, regret 0.36), the weighted one by a margin of a fifth; the two
-    differ (ŵ reached the loss)."""
+    """TorchRL's IQLLoss with ŵ through WeightedLoss: below the behaviour mean's regret by a margin of a fifth (the
+    actor starts near the zero action, regret 0.36). ``--quick`` trains the weighted one only (the full run reports
+    its unweighted twin beside it); that ŵ reaches IQL's terms is tests/test_weighted_loss.py's."""
     text = outputs["weighted_iql_lqr"]
-    weighted, plain = _figure(text, "ŵ-weighted IQL"), _figure(text, "IQL")
+    weighted = _figure(text, "ŵ-weighted IQL")
     assert weighted < 0.8 * regrets["behaviour_mean"], weighted
-    assert plain < regrets["behaviour_mean"], plain
-    assert weighted != plain
+    assert not re.search(r"^IQL\s", text, re.MULTILINE), text  # the twin is not trained in --quick
     assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
 
 
