@@ -51,6 +51,24 @@ FEW_DEMONSTRATION_METHODS = {
 FEW_LABELS = ("task", "cell", "method")
 
 
+def dataset_overrides(data_path: Path, expert: str, behaviour: str) -> list[str]:
+    """The dataset keys of a run on benchmark datasets: ``env=minari``, where the datasets are, and the ids of S^e's and
+    D's datasets."""
+    return ["env=minari", f"env.minari.data_path={data_path}", f"env.minari.expert={expert}",
+            f"env.minari.behaviour={behaviour}"]
+
+
+def flagged_and_wall(recs: list[dict]) -> tuple[str, str]:
+    """A table row's "flagged" cell (how many of its runs were flagged, and with which flags) and its mean wall seconds
+    per run."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+
+    flags = sorted({f for r in recs for f in r.get("flags", [])})
+    flagged = sum(1 for r in recs if r.get("flags"))
+    wall = [r["wall_seconds"] for r in recs if isinstance(r.get("wall_seconds"), (int, float))]
+    return f"{flagged}{' (' + ', '.join(flags) + ')' if flags else ''}", f"{mean_ci(wall).mean:.0f}" if wall else "–"
+
+
 def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_path: Path, namespace: str,
                 base_steps: int, base_eval_every: int) -> list[dict]:
     from torchrl_wbrm.data.benchmark import benchmark_ids
@@ -60,8 +78,7 @@ def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_pat
         ids = benchmark_ids(task, namespace)
         for algo in algos:
             for budget in budgets:
-                overrides = ["env=minari", f"env.minari.data_path={data_path}", f"env.minari.expert={ids['expert']}",
-                             f"env.minari.behaviour={ids['behaviour']}", f"algo={algo}", "logger=none"]
+                overrides = [*dataset_overrides(data_path, ids["expert"], ids["behaviour"]), f"algo={algo}", "logger=none"]
                 if budget != 1:
                     overrides += [f"q.steps={budget * base_steps}", f"q.eval_every={budget * base_eval_every}"]
                 cells.append({"task": task, "algo": algo, "budget": f"x{budget}", "overrides": overrides})
@@ -84,9 +101,8 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
         ids = few_demonstration_ids(task, namespace)
         for n in expert_episodes:
             for share in shares:
-                data = ["env=minari", f"env.minari.data_path={data_path}", f"env.minari.expert={ids['expert_pool']}",
-                        f"env.minari.expert_episodes={n}", f"env.minari.behaviour={ids[f'behaviour_expert{share}']}",
-                        "logger=none"]
+                data = [*dataset_overrides(data_path, ids["expert_pool"], ids[f"behaviour_expert{share}"]),
+                        f"env.minari.expert_episodes={n}", "logger=none"]
                 for method in methods:
                     cells.append({"task": task, "cell": f"se{n}_expert{share}", "method": method,
                                   "overrides": data + FEW_DEMONSTRATION_METHODS[method]})
@@ -97,7 +113,6 @@ def few_demonstrations_report(out: Path) -> str:
     """``tables.md`` of the few-demonstration table: per task, cell and method (in the order of
     :data:`FEW_DEMONSTRATION_METHODS`), the normalised score as mean ± 95% CI over the seeds and each seed's, the
     flags and the wall seconds per run."""
-    from torchrl_wbrm.evaluation.stats import mean_ci
     from torchrl_wbrm.training.reporting import ci_cell, load_results, split_by_status
 
     records, excluded = split_by_status(load_results(out))
@@ -113,13 +128,9 @@ def few_demonstrations_report(out: Path) -> str:
         recs = sorted(rows[key], key=lambda r: r.get("seed", 0))
         per_seed = ", ".join(f"{r['seed']}: {r['final']['normalised_score']:.1f}" for r in recs
                              if isinstance(r.get("final", {}).get("normalised_score"), (int, float)))
-        flags = sorted({f for r in recs for f in r.get("flags", [])})
-        flagged = sum(1 for r in recs if r.get("flags"))
-        wall = [r["wall_seconds"] for r in recs if isinstance(r.get("wall_seconds"), (int, float))]
+        flagged, wall = flagged_and_wall(recs)
         lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {len(recs)} | "
-                     f"{ci_cell(recs, 'final.normalised_score', 1)} | {per_seed} | "
-                     f"{flagged}{' (' + ', '.join(flags) + ')' if flags else ''} | "
-                     f"{f'{mean_ci(wall).mean:.0f}' if wall else '–'} |")
+                     f"{ci_cell(recs, 'final.normalised_score', 1)} | {per_seed} | {flagged} | {wall} |")
     if excluded:
         lines.append(f"\n{len(excluded)} run(s) excluded (not finished: diverged or interrupted).")
     return "\n".join(lines) + "\n"
@@ -127,7 +138,6 @@ def few_demonstrations_report(out: Path) -> str:
 
 def benchmark_report(out: Path) -> str:
     """``tables.md``'s text from every run under ``out``."""
-    from torchrl_wbrm.evaluation.stats import mean_ci
     from torchrl_wbrm.training.reporting import ci_cell, load_results, split_by_status
 
     records, excluded = split_by_status(load_results(out))
@@ -142,14 +152,11 @@ def benchmark_report(out: Path) -> str:
     ]
     for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
         recs = rows[key]
-        flags = sorted({f for r in recs for f in r.get("flags", [])})
-        flagged = sum(1 for r in recs if r.get("flags"))
-        wall = [r["wall_seconds"] for r in recs if isinstance(r.get("wall_seconds"), (int, float))]
-        wall_cell = f"{mean_ci(wall).mean:.0f}" if wall else "–"
+        flagged, wall = flagged_and_wall(recs)
         lines.append(
             f"| {key[0]} | {key[1]} | {key[2]} | {len(recs)} | {ci_cell(recs, 'final.normalised_score', 1)} | "
             f"{ci_cell(recs, 'final.return', 1)} | {ci_cell(recs[:1], 'final.data_behaviour_normalised_score', 1)} | "
-            f"{flagged}{' (' + ', '.join(flags) + ')' if flags else ''} | {wall_cell} |")
+            f"{flagged} | {wall} |")
     if excluded:
         lines.append(f"\n{len(excluded)} run(s) excluded (not finished: diverged or interrupted).")
     return "\n".join(lines) + "\n"
