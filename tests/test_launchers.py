@@ -26,6 +26,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -100,7 +101,7 @@ def ray_cluster():
             if proc.poll() is not None or time.monotonic() > deadline:
                 pytest.fail(f"ray start did not come up (rc {proc.poll()}):\n{log_path.read_text()[-3000:]}")
             time.sleep(0.2)
-        yield f"127.0.0.1:{port}"
+        yield SimpleNamespace(address=f"127.0.0.1:{port}", temp_dir=Path(temp_dir))
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -118,7 +119,7 @@ def ray_cluster():
 
 def test_multirun_on_a_local_ray_cluster(tmp_path, ray_cluster):
     proc = run_recipe(
-        "wbrm_offline.py", "-m", "hydra/launcher=ray", f"hydra.launcher.ray.init.address={ray_cluster}",
+        "wbrm_offline.py", "-m", "hydra/launcher=ray", f"hydra.launcher.ray.init.address={ray_cluster.address}",
         # the launcher sets a default object_store_memory, which ray.init refuses when it joins a running cluster
         "+hydra.launcher.ray.init.object_store_memory=null",
         "seed=0,1", "ratio.source=none", *TINY_LQR, "plots=false", "logger=none", f"hydra.sweep.dir={tmp_path}",
@@ -126,10 +127,15 @@ def test_multirun_on_a_local_ray_cluster(tmp_path, ray_cluster):
     )
     out = proc.stdout + proc.stderr
     # the driver joined the cluster the fixture started (Ray prints the node's own IP, so match the port)
-    port = ray_cluster.rsplit(":", 1)[1]
+    port = ray_cluster.address.rsplit(":", 1)[1]
     assert re.search(rf"Connecting to existing Ray cluster at address: [\w.]+:{port}\b", out), out[-3000:]
     assert "Ray Launcher is launching 2 jobs" in out
-    assert out.count("(_run_job pid=") >= 2  # the jobs printed from Ray worker processes
+    # the jobs ran in this cluster's worker processes: each worker's stdout goes to its own file in the cluster's
+    # log folder, written by the worker itself (the driver's echo of it, "(_run_job pid=...)", comes from Ray's log
+    # monitor and can arrive after the driver has exited)
+    workers = "".join(p.read_text(errors="replace")
+                      for p in ray_cluster.temp_dir.glob("session_*/logs/worker-*.out"))
+    assert workers.count(":task_name:_run_job") >= 2, workers[-3000:]
     _check_two_results(tmp_path)
 
 
