@@ -83,6 +83,8 @@ class Algo:
         bellman_loss: a :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss` whose unweighted residual on held-out
             episodes of D is reported (``None``: not reported).
         uses_ratio: the method reads the stage-1 weights ŵ (only ``wbrm``).
+        cloning: the actor's S^e cloning term (:class:`ExpertCloning`, ``q.expert_bc_alpha``), which the trainer
+            extends with D's expert-like episodes after stage 1 (``q.expert_bc_from_d``); ``None``: none.
     """
 
     loss: LossModule
@@ -94,6 +96,7 @@ class Algo:
     map_data: Callable[[TensorDictBase], TensorDictBase] | None = None
     bellman_loss: WeightedBellmanLoss | None = None
     uses_ratio: bool = False
+    cloning: "ExpertCloning | None" = None
 
 
 # ---------------------------------------------------------------------- shared pieces
@@ -222,8 +225,10 @@ class ExpertCloning:
             raise ValueError(f"q.expert_bc_alpha must be > 0 or null, got {alpha!r}.")
         self.actor, self.alpha = actor, float(alpha)
         self.weighted_d, self.weight_key = bool(weighted_d), weight_key
-        keys = list(actor.in_keys) + ["action"]
-        self.buffer = make_replay_buffer(expert_samples.select(*keys), batch_size=batch_size)
+        self.keys, self.batch_size = list(actor.in_keys) + ["action"], batch_size
+        self.expert_samples = expert_samples.select(*self.keys)
+        self.buffer = make_replay_buffer(self.expert_samples, batch_size=batch_size)
+        self.added_rows = 0
         self.centre = ((action_spec.space.high + action_spec.space.low) / 2).to(torch.float32)
         self.half_width = ((action_spec.space.high - action_spec.space.low) / 2).clamp_min(1e-6).to(torch.float32)
 
@@ -249,6 +254,15 @@ class ExpertCloning:
             loss = loss + bc_d
             figures["weighted_d_bc_loss"] = bc_d.detach()
         return loss, figures
+
+    def add_expert_like(self, rows: TensorDictBase) -> None:
+        """Clone ``rows`` (D's expert-like episodes, ``q.expert_bc_from_d``) as S^e is: the term's buffer becomes
+        one over S^e's samples and ``rows``. Replaces any earlier call's rows."""
+        from torchrl_wbrm.data import make_replay_buffer
+
+        rows = rows.select(*self.keys).to(self.expert_samples.device)
+        self.buffer = make_replay_buffer(torch.cat([self.expert_samples, rows], 0), batch_size=self.batch_size)
+        self.added_rows = rows.shape[0]
 
     def batches(self):
         """S^e's batches: :class:`~torchrl_wbrm.data.sampling.BufferBatches` over :attr:`buffer` (the indices
@@ -348,6 +362,7 @@ def bellman_residual_algo(ctx: AlgoContext, *, weighted: bool) -> Algo:
         q_value=q_reader(loss.value_network, loss.value_network_params),
         bellman_loss=loss,
         uses_ratio=weighted,
+        cloning=cloning,
     )
 
 
@@ -359,7 +374,8 @@ def discrete_bellman_residual_algo(ctx: AlgoContext, *, weighted: bool, num_acti
     94). Targets by ``SoftUpdate`` after every step (``q.target_tau``), or residual gradient (``q.bootstrap``)."""
     qc = ctx.cfg.q
     for key, value in (("q.bc_alpha", qc.bc_alpha), ("q.weight_actor_loss", qc.weight_actor_loss),
-                       ("q.expert_bc_weighted_d", qc.expert_bc_weighted_d)):
+                       ("q.expert_bc_weighted_d", qc.expert_bc_weighted_d),
+                       ("q.expert_bc_from_d", qc.expert_bc_from_d)):
         if value:
             raise ValueError(f"{key}={value!r} configures the actor, but a Discrete({num_actions}) action has none "
                              f"(Q over the {num_actions} actions, the policy greedy in Q): unset {key}.")

@@ -11,7 +11,8 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   TorchRL loss wrapped in ``WeightedLoss``) or ``"priority_weight"`` (read natively only by the TorchRL losses of
   ``NATIVE_PRIORITY_WEIGHT_LOSSES``); in a replay buffer the weights follow their rows
   (:class:`StoredWeightsFollowRows`). :func:`episode_weights` first gives each row its episode's weight, the
-  geometric mean of ŵ over the episode (``ratio.aggregate=episode``).
+  geometric mean of ŵ over the episode (``ratio.aggregate=episode``); :func:`expert_like_episodes` selects the
+  episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``).
 """
 from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
 from torchrl_wbrm.ratio.storing import (
@@ -21,7 +22,7 @@ from torchrl_wbrm.ratio.storing import (
     compute_density_ratio,
     store_density_ratio,
 )
-from torchrl_wbrm.ratio.weights import episode_weights, shape_weights
+from torchrl_wbrm.ratio.weights import episode_weights, expert_like_episodes, shape_weights
 
 __all__ = [
     "DensityRatioFit",
@@ -32,6 +33,7 @@ __all__ = [
     "as_tensordict",
     "compute_density_ratio",
     "episode_weights",
+    "expert_like_episodes",
     "fit_density_ratio",
     "holdout_split",
     "shape_weights",

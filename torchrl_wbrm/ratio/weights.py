@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["episode_weights", "shape_weights"]
+__all__ = ["episode_weights", "expert_like_episodes", "shape_weights"]
 
 
 def episode_weights(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
@@ -44,6 +44,36 @@ def episode_weights(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
     count.index_add_(0, index, torch.ones_like(log_w))
     total = torch.zeros_like(count).index_add_(0, index, log_w)
     return (total / count).exp()[index].reshape(w.shape).to(w.dtype)
+
+
+def expert_like_episodes(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+    """The rows of the episodes more likely under the expert's state-action distribution than under the data's:
+    those whose episode's mean of ``log(ŵ / mean ŵ)`` is above 0 (the geometric mean of the self-normalised ratio
+    above 1, :func:`episode_weights`). ``Σ_t log ŵ(x_t, a_t)`` is the log-likelihood ratio of the episode's
+    state-actions, d^e against d^D, each step taken alone: the episodes it selects are those a likelihood-ratio test
+    at even odds calls the expert's. No threshold to set: ŵ ≡ 1 selects no episode.
+
+    Args:
+        w: the ratio over the data's rows, ``[N]`` or ``[N, 1]``, finite and non-negative (not all 0).
+        episode: the rows' episode ids, ``[N]`` (or ``[N, 1]``).
+
+    Returns:
+        A boolean mask ``[N]``: the rows of the selected episodes.
+
+    Examples:
+        >>> import torch
+        >>> w = torch.tensor([3.0, 3.0, 0.1, 0.2, 0.1, 1.0])
+        >>> expert_like_episodes(w, torch.tensor([0, 0, 1, 1, 1, 2])).tolist()
+        [True, True, False, False, False, False]
+        >>> expert_like_episodes(torch.ones(4), torch.tensor([0, 0, 1, 1])).any().item()
+        False
+    """
+    flat = w.reshape(-1).double()
+    mean = flat.mean() if flat.numel() else flat.new_ones(())
+    if not mean > 0:
+        raise ValueError("expert_like_episodes needs weights with a positive mean over the data, got "
+                         f"{float(mean)!r}.")
+    return episode_weights(flat / mean, episode.reshape(-1)) > 1
 
 
 def shape_weights(

@@ -147,6 +147,13 @@ class QConfig:
             over the batch: μ clones S^e and the rows of D that ŵ calls expert-like. Needs ``expert_bc_alpha`` > 0
             (``wbrm`` and ``brm``, a continuous action). Where there is no ŵ (``algo=brm``, ``ratio.source=none``)
             every stored weight is 1: the term is the plain cloning of D's actions, the ŵ ≡ 1 control.
+        expert_bc_from_d: the cloning term's expert set is S^e together with D's expert-like episodes: the episodes
+            whose geometric mean of the raw stage-1 ŵ, self-normalised over D, is above 1 (the episode's
+            state-actions are more likely under the expert's distribution than under D's;
+            :func:`~torchrl_wbrm.ratio.expert_like_episodes`), cloned as S^e is. Reads ŵ before ``ratio.temper``,
+            ``ratio.clip`` and ``ratio.aggregate``, which shape only the residual's weights. Needs
+            ``expert_bc_alpha`` > 0 and D's episode ids. Where there is no ŵ (``algo=brm``,
+            ``ratio.source=none``) every episode's mean is 1 and none is added: the ŵ ≡ 1 control clones S^e.
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
             (a criterion a user without ground truth can compute).
@@ -180,6 +187,7 @@ class QConfig:
     bc_alpha: Optional[float] = None
     expert_bc_alpha: Optional[float] = None
     expert_bc_weighted_d: bool = False
+    expert_bc_from_d: bool = False
     grad_clip: Optional[float] = None
     init_bias: bool = True
     holdout_fraction: float = 0.1
@@ -521,6 +529,11 @@ def validate_config(cfg, task: Task | None = None) -> None:
                          f"term, which is off (q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
     if cfg.q.expert_bc_weighted_d and cfg.algo not in ("wbrm", "brm"):
         raise ValueError(f"q.expert_bc_weighted_d=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
+    if cfg.q.expert_bc_from_d and not cfg.q.expert_bc_alpha:
+        raise ValueError("q.expert_bc_from_d=true adds D's expert-like episodes to the actor's S^e cloning term, "
+                         f"which is off (q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
+    if cfg.q.expert_bc_from_d and cfg.algo not in ("wbrm", "brm"):
+        raise ValueError(f"q.expert_bc_from_d=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)

@@ -42,7 +42,7 @@ from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import q_value_bound
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
-                                store_density_ratio)
+                                expert_like_episodes, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour
@@ -431,6 +431,7 @@ class WBRMTrainer:
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
+        expert_like = self._expert_like(d, w) if self.cfg.q.expert_bc_from_d else {}
         if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
             if "episode" not in d.keys():
                 raise ValueError("ratio.aggregate='episode' needs D's episode ids (key 'episode'), which these data "
@@ -445,8 +446,31 @@ class WBRMTrainer:
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
-        self.weight_stats = ratio_error(w)
+        self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+
+    def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> dict:
+        """``q.expert_bc_from_d``: the actor's cloning term gets D's expert-like episodes
+        (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``) beside S^e. Returns the figures recorded
+        with the weights: how many episodes and rows were added, and, where the data name D's true expert episodes,
+        how many of the added episodes are among them and how many of them D holds."""
+        if "episode" not in d.keys():
+            raise ValueError("q.expert_bc_from_d=true selects D's expert-like episodes, which needs D's episode ids "
+                             "(key 'episode'); these data do not hold them: set q.expert_bc_from_d=false.")
+        cloning = self.algo.cloning
+        if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
+            raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
+                             f"{self.cfg.algo} does not have.")
+        rows = expert_like_episodes(w, d["episode"])
+        cloning.add_expert_like(d[rows])
+        episodes = d["episode"].reshape(-1)[rows].unique()
+        figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
+        true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
+        if true_ids is not None:
+            true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
+            figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
+            figures["true_expert_episodes"] = int(torch.isin(d["episode"].reshape(-1).unique(), true_ids).sum())
+        return figures
 
     def _check_ratio(self, w: torch.Tensor) -> dict:
         """Stage 1's outcome, as the fitter judges it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`, the one

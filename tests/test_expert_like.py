@@ -1,0 +1,108 @@
+"""``q.expert_bc_from_d``: the actor clones S^e together with D's expert-like episodes, those whose geometric mean
+of the self-normalised stage-1 ŵ is above 1 (:func:`~torchrl_wbrm.ratio.expert_like_episodes`)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.references import tiny_lqr_config
+from torchrl_wbrm.ratio import compute_density_ratio, expert_like_episodes
+from torchrl_wbrm.training.config import WBRMConfig, validate_config
+
+
+# ---------------------------------------------------------------- the rule
+def test_known_answer_geometric_mean_of_the_self_normalised_ratio_above_one():
+    # mean ŵ = 21 / 7 = 3; per episode, the geometric mean of ŵ / 3: ep 3: 4/3 = 1.33; ep 9: 3.2/3 = 1.07; ep 5:
+    # 0.1/3; ep 0: (0.1·0.1·9.5)^(1/3)/3 = 0.15, though its arithmetic mean, 3.23, is above ŵ's (two of its steps
+    # are far from the expert's)
+    w = torch.tensor([4.0, 0.1, 4.0, 0.1, 9.5, 3.2, 0.1])
+    episode = torch.tensor([3, 0, 3, 0, 0, 9, 5])  # rows of one episode need not be contiguous
+    assert expert_like_episodes(w, episode).tolist() == [True, False, True, False, False, True, False]
+    # [N, 1] weights and ids, as stored, and any positive scale of ŵ select the same rows
+    assert expert_like_episodes(3 * w.reshape(-1, 1), episode.reshape(-1, 1)).tolist() == \
+        expert_like_episodes(w, episode).tolist()
+
+
+def test_a_flat_ratio_selects_nothing_and_a_zero_step_rules_an_episode_out():
+    episode = torch.tensor([0, 0, 1, 1, 2])
+    assert not expert_like_episodes(torch.full((5,), 0.7), episode).any()
+    # mean ŵ 18.02: episode 0 is at 1.11; episode 1 has one step the expert never takes (ŵ = 0), its likelihood
+    # ratio is 0 however high its other step
+    assert expert_like_episodes(torch.tensor([20.0, 20.0, 0.0, 50.0, 0.1]), episode).tolist() == \
+        [True, True, False, False, False]
+
+
+def test_bad_input_is_refused_naming_the_shapes():
+    with pytest.raises(ValueError, match="positive mean"):
+        expert_like_episodes(torch.zeros(3), torch.tensor([0, 0, 1]))
+    with pytest.raises(ValueError, match="one episode id per row"):
+        expert_like_episodes(torch.ones(3), torch.tensor([0, 1]))
+    with pytest.raises(ValueError, match="finite and non-negative"):
+        expert_like_episodes(torch.tensor([1.0, -1.0, 3.0]), torch.tensor([0, 0, 1]))
+
+
+# ---------------------------------------------------------------- the config
+def test_the_setting_is_checked():
+    assert WBRMConfig().q.expert_bc_from_d is False
+    validate_config(tiny_lqr_config(q={"expert_bc_from_d": True}))
+    validate_config(tiny_lqr_config(algo="brm", q={"expert_bc_from_d": True}))  # ŵ ≡ 1: the control
+    with pytest.raises(ValueError, match="q.expert_bc_alpha > 0"):
+        validate_config(tiny_lqr_config(q={"expert_bc_from_d": True, "expert_bc_alpha": 0.0}))
+    with pytest.raises(ValueError, match="not algo=td3bc"):
+        validate_config(tiny_lqr_config(algo="td3bc", q={"expert_bc_from_d": True}))
+
+
+# ---------------------------------------------------------------- the trainer
+def _after_stage_1(cfg, run_dir):
+    from torchrl_wbrm.training import WBRMTrainer
+
+    trainer = WBRMTrainer(cfg, run_dir, progress=False)
+    trainer.run(until=0)
+    return trainer
+
+
+@pytest.mark.parametrize("algo", ["wbrm", "brm"])
+def test_the_cloning_set_is_s_e_and_the_selected_episodes_of_d(tmp_path, algo):
+    """After stage 1 the actor's cloning buffer holds S^e's rows, then the rows of D's episodes that the rule
+    selects from the raw ŵ (before the residual's shaping); ŵ ≡ 1 (brm) adds none."""
+    # a stage 1 that separates D's episodes: S^e is the expert, D a noisy behaviour
+    trainer = _after_stage_1(tiny_lqr_config(algo=algo, q={"expert_bc_from_d": True}), tmp_path / algo)
+    try:
+        d = trainer.q_train_data
+        cloning = trainer.algo.cloning
+        expert = trainer.datasets.expert_samples[:]
+        if algo == "brm":
+            want = torch.zeros(d.shape[0], dtype=torch.bool)
+        else:
+            w = compute_density_ratio(trainer.ratio_network, d, chunk_size=8192)
+            want = expert_like_episodes(w, d["episode"])
+            assert 0 < int(want.sum()) < d.shape[0]  # this fit selects some episodes, not all
+        stored = cloning.buffer.storage[: len(cloning.buffer)]
+        assert cloning.added_rows == int(want.sum()) and len(cloning.buffer) == expert.shape[0] + cloning.added_rows
+        for key in ("observation", "action"):
+            torch.testing.assert_close(stored[key], torch.cat([expert[key], d[key][want]]))
+        stats = trainer.weight_stats
+        assert stats["expert_like_rows"] == cloning.added_rows
+        assert stats["expert_like_episodes"] == d["episode"][want].unique().numel()
+    finally:
+        trainer.release()
+
+
+def test_the_seeds_clone_their_own_extended_sets(tmp_path):
+    """Seeds in one process: each seed's S^e batches come from its own trainer's extended cloning set."""
+    from torchrl_wbrm.training.seeds import SeedGroup
+
+    cfg = tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True})
+    group = SeedGroup(cfg, tmp_path / "seeds", progress=False)
+    group._run_ratio()
+    for trainer in group.trainers:
+        trainer.ratio_fitter.best_network()
+        trainer.state = {"stage": "q", "step": 0}
+        trainer._build_q_buffer()
+    update = group.q_update()
+    try:
+        sizes = [len(t.algo.cloning.buffer) for t in group.trainers]
+        assert all(t.algo.cloning.added_rows > 0 for t in group.trainers)
+        assert update.expert.lengths == sizes
+    finally:
+        update.close()
