@@ -7,6 +7,10 @@ from collections import Counter
 import pytest
 import torch
 
+from tests.forked import mark_pandas_absent
+
+mark_pandas_absent()
+
 
 def pytest_configure(config):
     """Under pytest-xdist (``-n 2``) every worker, and every subprocess it starts, runs torch on one thread.

@@ -14,6 +14,7 @@ command) still runs as a real ``python`` subprocess.
 """
 from __future__ import annotations
 
+import importlib.util
 import multiprocessing
 import os
 import runpy
@@ -31,6 +32,19 @@ PRELOAD = ["torchrl_wbrm.cli", "torchrl_wbrm.training.seeds", "matplotlib.pyplot
 _context = None
 
 
+def mark_pandas_absent() -> None:
+    """Where pandas is not installed, say so in ``sys.modules`` (``None``), where :func:`importlib.util.find_spec`
+    looks first; called by tests/conftest.py and in each forked child.
+
+    tensordict asks ``find_spec("pandas")`` for every output a TensorDictModule writes (``TensorDict.from_any``);
+    without pandas each call searches every path entry (and pytest's import hook) again, about 40 µs: measured here,
+    8-15% of an IQL training step on LQR. The answer stays None, and ``import pandas`` still raises
+    ModuleNotFoundError.
+    """
+    if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
+        sys.modules["pandas"] = None
+
+
 def _forkserver():
     global _context
     if _context is None:
@@ -46,6 +60,7 @@ def _child(script: str, args: list[str], cwd: str, env: dict, stdout_path: str, 
         os.close(target)
     os.environ.clear()
     os.environ.update(env)
+    mark_pandas_absent()
     os.chdir(cwd)
     sys.argv[:] = [script, *args]
     code = 0
