@@ -38,6 +38,8 @@ LABELS = ("task", "algo", "budget")
 FEW_DEMONSTRATION_METHODS = {
     "wbrm": ["algo=wbrm"],                                   # the default recipe
     "brm": ["algo=brm"],                                     # the same with ŵ ≡ 1
+    # the actor also clones D's expert-like episodes, as the stage-1 ŵ ranks them (ŵ ≡ 1 adds none: "brm")
+    "wbrm_from_d": ["algo=wbrm", "q.expert_bc_from_d=true"],
     "bc": ["algo=bc"],                                       # cloning S^e
     "bc_union": ["algo=bc", "baselines.bc.data=union"],      # cloning S^e ∪ D
     # cloning S^e ∪ D, D's rows weighted by the untempered ŵ (as ISW-BC weights by its ratio)
@@ -86,10 +88,12 @@ def build_cells(tasks: list[str], algos: list[str], budgets: list[int], data_pat
 
 
 def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares: list[str], methods: list[str],
-                            data_path: Path, namespace: str) -> list[dict]:
-    """Every (task, S^e size, expert share of D, method) cell: ``S^e`` = ``n`` episodes of the task's expert pool
-    drawn by the seed, ``D`` its ``behaviour-expert<pp>-v0`` set, the method's overrides
-    (:data:`FEW_DEMONSTRATION_METHODS`); the cell label is ``se<n>_expert<pp>``."""
+                            data_path: Path, namespace: str, budgets: tuple[int, ...] = (1,), base_steps: int = 0,
+                            base_eval_every: int = 0) -> list[dict]:
+    """Every (task, S^e size, expert share of D, budget, method) cell: ``S^e`` = ``n`` episodes of the task's expert
+    pool drawn by the seed, ``D`` its ``behaviour-expert<pp>-v0`` set, the method's overrides
+    (:data:`FEW_DEMONSTRATION_METHODS`) at ``budget`` times ``base_steps`` (and ``base_eval_every``); the cell label
+    is ``se<n>_expert<pp>``, with ``_x<budget>`` beyond the default budget."""
     from torchrl_wbrm.data.benchmark import few_demonstration_ids
 
     unknown = [m for m in methods if m not in FEW_DEMONSTRATION_METHODS]
@@ -103,9 +107,13 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
             for share in shares:
                 data = [*dataset_overrides(data_path, ids["expert_pool"], ids[f"behaviour_expert{share}"]),
                         f"env.minari.expert_episodes={n}", "logger=none"]
-                for method in methods:
-                    cells.append({"task": task, "cell": f"se{n}_expert{share}", "method": method,
-                                  "overrides": data + FEW_DEMONSTRATION_METHODS[method]})
+                for budget in budgets:
+                    steps = [] if budget == 1 else [f"q.steps={budget * base_steps}",
+                                                    f"q.eval_every={budget * base_eval_every}"]
+                    cell = f"se{n}_expert{share}" + ("" if budget == 1 else f"_x{budget}")
+                    for method in methods:
+                        cells.append({"task": task, "cell": cell, "method": method,
+                                      "overrides": data + FEW_DEMONSTRATION_METHODS[method] + steps})
     return cells
 
 
@@ -210,7 +218,7 @@ def main(argv=None) -> None:
         steps, eval_every = (MinariTask.TRAINING_DEFAULTS[k] for k in ("q.steps", "q.eval_every"))
         if few:
             cells = few_demonstration_cells(args.tasks, args.expert_episodes, args.expert_shares, args.methods,
-                                            data_path, args.namespace)
+                                            data_path, args.namespace, args.budgets, steps, eval_every)
         else:
             cells = build_cells(args.tasks, args.algos, args.budgets, data_path, args.namespace, steps, eval_every)
         budget = (["ratio.steps=20", "q.steps=20", "q.eval_every=10", "eval.episodes=2", "eval.train_episodes=1",

@@ -285,3 +285,23 @@ def test_few_demonstration_table_quick(pendulum, tmp_path):
     assert weighted["ratio"]["source"] == "learned" and weighted["ratio"]["steps_run"] > 0
     oracle = json.loads((out / "bc_oracle" / "seed0" / "results.json").read_text())
     assert oracle["ratio"]["source"] == "none" and oracle["config"]["baselines"]["bc"]["data"] == "oracle"
+
+
+def test_few_demonstration_cells_at_other_budgets():
+    """``--budgets`` in the few-demonstration table: each budget beyond the default is a cell of its own, labelled
+    ``_x<k>``, with ``k`` times the default ``q.steps`` and ``q.eval_every`` after the method's overrides."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cells = module.few_demonstration_cells(["pendulum"], [3], ["10"], ["wbrm_from_d", "brm"], Path("/data"),
+                                           "benchmark", (1, 3), 3000, 500)
+    assert [(c["cell"], c["method"]) for c in cells] == [
+        ("se3_expert10", "wbrm_from_d"), ("se3_expert10", "brm"),
+        ("se3_expert10_x3", "wbrm_from_d"), ("se3_expert10_x3", "brm")]
+    assert cells[0]["overrides"][-2:] == ["algo=wbrm", "q.expert_bc_from_d=true"]
+    assert cells[2]["overrides"][-4:] == ["algo=wbrm", "q.expert_bc_from_d=true", "q.steps=9000", "q.eval_every=1500"]
+    assert not any(o.startswith("q.steps=") for o in cells[1]["overrides"])
