@@ -106,3 +106,28 @@ def test_the_seeds_clone_their_own_extended_sets(tmp_path):
         assert update.expert.lengths == sizes
     finally:
         update.close()
+
+
+# ---------------------------------------------------------------- on a benchmark task
+def test_stage_1_finds_the_expert_episodes_hidden_in_d(tmp_path):
+    """Pendulum-v1's few-demonstration data, small: S^e 2 episodes of the expert pool, D the 10%-expert set's
+    training episodes (2–3 of about 27 the expert's, by the benchmark's metadata). Every episode the test adds is one
+    of D's true expert episodes, and it finds at least half of them (all of them on seeds 0, 1 and 2)."""
+    from torchrl_wbrm.data.benchmark import few_demonstration_ids, make_benchmark_task
+
+    make_benchmark_task("pendulum", tmp_path / "data", expert_episodes=2, behaviour_episodes=60,
+                        reference_episodes=2, pool_episodes=10)
+    ids = few_demonstration_ids("pendulum")
+    cfg = WBRMConfig(env="minari", seed=0)
+    m = cfg.env.minari
+    m.data_path, m.expert, m.expert_episodes = str(tmp_path / "data"), ids["expert_pool"], 2
+    m.behaviour = ids["behaviour_expert10"]
+    cfg.q.expert_bc_from_d, cfg.ratio.steps, cfg.plots = True, 600, False
+    trainer = _after_stage_1(cfg, tmp_path / "run")
+    try:
+        stats = trainer.weight_stats
+    finally:
+        trainer.release()
+    assert stats["true_expert_episodes"] >= 2, stats  # D holds some of the 6 hidden expert episodes
+    assert stats["expert_like_true_episodes"] == stats["expert_like_episodes"], stats  # nothing random added
+    assert stats["expert_like_episodes"] >= stats["true_expert_episodes"] / 2, stats
