@@ -220,14 +220,18 @@ def _params(trainer):
     return {k: v.clone() for k, v in trainer.q_loss.state_dict().items()}
 
 
-def test_resume_is_bit_identical(tmp_path):
+@pytest.mark.parametrize("q", [{}, {"expert_bc_from_d": True}], ids=["default", "expert_bc_from_d"])
+def test_resume_is_bit_identical(tmp_path, q):
+    """Also with D's expert-like episodes in the actor's cloning set: the resumed run selects them again."""
     torch.set_num_threads(1)
-    full = WBRMTrainer(tiny_config(), tmp_path / "full", progress=False)
+    full = WBRMTrainer(tiny_config(q=q), tmp_path / "full", progress=False)
     full_results = full.run()
-    interrupted = WBRMTrainer(tiny_config(), tmp_path / "cut", progress=False)
+    if q:
+        assert full_results["weights"]["expert_like_episodes"] > 0
+    interrupted = WBRMTrainer(tiny_config(q=q), tmp_path / "cut", progress=False)
     assert interrupted.run(until=25) is None  # stopped mid stage 2; checkpoint at step 25
     del interrupted
-    resumed = WBRMTrainer(tiny_config(), tmp_path / "cut", progress=False, resume=True)
+    resumed = WBRMTrainer(tiny_config(q=q), tmp_path / "cut", progress=False, resume=True)
     assert resumed.state == {"stage": "q", "step": 25}
     resumed_results = resumed.run()
     a, b = _params(full), _params(resumed)
