@@ -96,7 +96,7 @@ def test_the_weighted_term_is_added_to_the_s_e_term():
     spec, actor, loss, expert, batch = _parts()
     params = loss.actor_network_params
     q_loss, diagnostics = loss.actor_loss(batch)
-    q_abs = diagnostics["actor_q_mean"].abs()
+    q_abs = diagnostics["actor_q_abs_mean"]
     plain, plain_figures = _cloning(actor, expert, spec)(q_loss, q_abs, params)
     weighted, figures = _cloning(actor, expert, spec, weighted_d=True)(q_loss, q_abs, params, batch)
     with params.to_module(actor):
@@ -112,11 +112,49 @@ def test_the_weighted_term_is_added_to_the_s_e_term():
         _cloning(actor, expert, spec, weighted_d=True)(q_loss, q_abs, params)
 
 
+def test_the_step_weighs_the_q_term_by_the_mean_of_abs_q():
+    """TD3+BC's λ = α / mean_D |Q(x, μ(x))|, not α / |mean_D Q|: a batch whose Q changes sign has a mean near 0,
+    and λ would explode. The algo's step hands ExpertCloning the loss's ``"actor_q_abs_mean"``."""
+    from omegaconf import OmegaConf
+
+    from torchrl_wbrm.algos.base import bellman_step
+
+    spec, actor, loss, expert, batch = _parts()
+
+    def q_of_mu():
+        with loss.actor_network_params.to_module(actor):
+            mu = actor(batch.select("observation").clone())["action"]
+        with loss.value_network_params.to_module(loss.value_network):
+            return loss.value_network(batch["observation"], mu).reshape(-1).detach()
+
+    bias = [p for name, p in loss.value_network_params.items(True, True) if name[-1] == "bias"][-1]
+    with torch.no_grad():  # shift Q so that its batch mean is about 0 and its values of both signs
+        bias.sub_(q_of_mu().mean() - 0.01)
+    q = q_of_mu()
+    assert (q > 0).any() and (q < 0).any() and q.mean().abs() < 0.1 * q.abs().mean(), q
+    q_loss, diagnostics = loss.actor_loss(batch)
+    torch.testing.assert_close(diagnostics["actor_q_abs_mean"], q.abs().mean())
+    torch.testing.assert_close(diagnostics["actor_q_mean"], q.mean())
+    cloning = _cloning(actor, expert, spec)
+    seen = {}
+
+    def spy(loss_q, q_abs_mean, params, batch=None):
+        seen["q_abs_mean"] = q_abs_mean
+        return loss_q, {}
+
+    cloning.__class__ = type("Spy", (ExpertCloning,), {"__call__": lambda self, *a, **k: spy(*a, **k)})
+    cfg = OmegaConf.create({"q": {"grad_clip": None, "actor_delay": 1}})
+    optimisers = {"value": torch.optim.SGD(loss.value_network_params.values(True, True), lr=0.0),
+                  "actor": torch.optim.SGD(loss.actor_network_params.values(True, True), lr=0.0)}
+    bellman_step(loss, optimisers, cfg, cloning=cloning)(batch, 0)
+    torch.testing.assert_close(seen["q_abs_mean"], diagnostics["actor_q_abs_mean"])
+
+
 def test_gradients_reach_only_the_actor():
     spec, actor, loss, expert, batch = _parts()
     batch["density_ratio"].requires_grad_()
     q_loss, diagnostics = loss.actor_loss(batch)
-    value, _ = _cloning(actor, expert, spec, weighted_d=True)(q_loss, diagnostics["actor_q_mean"].abs(),
+    value, _ = _cloning(actor, expert, spec, weighted_d=True)(q_loss, diagnostics["actor_q_abs_mean"],
                                                                loss.actor_network_params, batch)
     value.backward()
     actor_grads = [p.grad for p in loss.actor_network_params.values(True, True) if p.requires_grad]
@@ -133,7 +171,7 @@ def test_only_the_weighted_rows_of_d_pull_the_actor():
     other["action"][zero] = -other["action"][zero]
     cloning = _cloning(actor, expert, spec, weighted_d=True)
     q_loss, diagnostics = loss.actor_loss(batch)
-    q_abs = diagnostics["actor_q_mean"].abs()
+    q_abs = diagnostics["actor_q_abs_mean"]
     a, _ = cloning(q_loss, q_abs, loss.actor_network_params, batch)
     b, _ = cloning(q_loss, q_abs, loss.actor_network_params, other)
     torch.testing.assert_close(a, b)
@@ -181,7 +219,7 @@ def test_the_vectorised_actor_loss_is_each_seeds_own(tmp_path):
         cloning = _expert_cloning(trainer)
         cloning.buffer = _Given(expert[i])
         q_loss, diagnostics = loss.actor_loss(batch[i])
-        own, own_figures = cloning(q_loss, diagnostics["actor_q_mean"].abs(), loss.actor_network_params, batch[i])
+        own, own_figures = cloning(q_loss, diagnostics["actor_q_abs_mean"], loss.actor_network_params, batch[i])
         torch.testing.assert_close(losses[i], own.detach(), rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(figures["weighted_d_bc_loss"][i], own_figures["weighted_d_bc_loss"],
                                    rtol=1e-5, atol=1e-6)

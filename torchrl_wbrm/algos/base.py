@@ -191,10 +191,10 @@ class ExpertCloning:
     """The actor's support term: TD3+BC's cloning, toward the expert's actions in S^e, in unit actions.
 
     The actor step minimises ``λ · (−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x_e) − a_e) / h‖² / m``, with
-    ``λ = α / |mean_D Q(x, μ(x))|`` (:func:`~torchrl_wbrm.objectives.functional.td3bc_lambda` of the batch's mean
-    Q: Fujimoto & Gu's normalisation, the Q term has the same size whatever the reward scale; it equals their
-    ``α / mean_D |Q|`` wherever Q keeps one sign over the batch, as on the LQR tasks) and ``h`` the half-width of
-    the action box (the cloning term has the same size whatever the action bounds; ``m`` the action dimension).
+    ``λ = α / mean_D |Q(x, μ(x))|`` (:func:`~torchrl_wbrm.objectives.functional.td3bc_lambda`: Fujimoto & Gu's
+    normalisation, the Q term has the same size whatever the reward scale; the mean of ``|Q|``, not ``|mean Q|``,
+    which passes through 0 when Q changes sign during training, as on LunarLanderContinuous-v3, and then makes λ
+    explode and the Q term pull the actor off the expert) and ``h`` the half-width of the action box (the cloning term has the same size whatever the action bounds; ``m`` the action dimension).
     S^e, the expert samples the method already holds for stage 1, keeps μ on the expert's support; Q then moves it
     only where Q says it pays. Its batches are drawn from a torchrl replay buffer over S^e with the global generator
     (checkpointed with the run), as the buffer's ``sample()`` draws them, gathered by
@@ -232,10 +232,11 @@ class ExpertCloning:
         self.centre = ((action_spec.space.high + action_spec.space.low) / 2).to(torch.float32)
         self.half_width = ((action_spec.space.high - action_spec.space.low) / 2).clamp_min(1e-6).to(torch.float32)
 
-    def __call__(self, loss_q: torch.Tensor, q_mean_abs: torch.Tensor, params,
+    def __call__(self, loss_q: torch.Tensor, q_abs_mean: torch.Tensor, params,
                  batch: TensorDictBase | None = None) -> tuple[torch.Tensor, dict]:
-        """``loss_q = −mean_D Q(x, μ(x))`` and ``q_mean_abs = |mean_D Q(x, μ(x))|``; returns the actor's loss and the
-        cloning terms (detached). ``batch``: the actor step's D batch, needed with :attr:`weighted_d`."""
+        """``loss_q = −mean_D Q(x, μ(x))`` and ``q_abs_mean = mean_D |Q(x, μ(x))|`` (``actor_loss``'s
+        ``"actor_q_abs_mean"``); returns the actor's loss and the cloning terms (detached). ``batch``: the actor
+        step's D batch, needed with :attr:`weighted_d`."""
         batches = self.batches()
         expert = self.buffer.sample() if batches is None else batches.sample()
         call = self.network_call(params)
@@ -243,7 +244,7 @@ class ExpertCloning:
         if self.half_width.device != mu.device:
             self.half_width = self.half_width.to(mu.device)
         bc = action_cloning(mu, expert["action"], self.half_width)
-        loss = td3bc_lambda(self.alpha, q_mean_abs) * loss_q + bc
+        loss = td3bc_lambda(self.alpha, q_abs_mean) * loss_q + bc
         figures = {"expert_bc_loss": bc.detach()}
         if self.weighted_d:
             if batch is None:
@@ -312,7 +313,7 @@ def bellman_step(loss: WeightedBellmanLoss, optimisers, cfg: WBRMConfig, *, upda
         if i % qc.actor_delay == 0 and loss.has_actor:
             loss_actor, actor_figures = loss.actor_loss(batch)
             if cloning is not None:
-                loss_actor, bc_figures = cloning(loss_actor, actor_figures["actor_q_mean"].abs(),
+                loss_actor, bc_figures = cloning(loss_actor, actor_figures["actor_q_abs_mean"],
                                                  loss.actor_network_params, batch)
                 out.update(bc_figures)
             descend(loss_actor, optimisers["actor"])

@@ -146,7 +146,8 @@ class WeightedBellmanLoss(LossModule):
 
     Output: ``"loss_value"``, ``"loss_actor"`` (with an actor) and detached diagnostics ``"td_error_mean"``,
     ``"td_error_abs_mean"``, ``"q_mean"`` (mean Q(x, a)), ``"target_value_mean"``, with weights ``"weight_mean"``
-    and ``"weight_ess"`` (Kish (Σŵ)²/Σŵ²), with an actor ``"actor_q_mean"`` and, with ``bc_alpha``, ``"bc_loss"``.
+    and ``"weight_ess"`` (Kish (Σŵ)²/Σŵ²), with an actor ``"actor_q_mean"`` and ``"actor_q_abs_mean"`` (the batch means of Q(x, μ(x)) and of its absolute
+    value) and, with ``bc_alpha``, ``"bc_loss"``.
     ``forward`` writes ``δ²`` (detached, shape ``[*B, 1]``) into the input under ``"td_error"`` as DQNLoss does;
     no other input entry is changed.
 
@@ -414,7 +415,7 @@ class WeightedBellmanLoss(LossModule):
             if self.use_weights:
                 keys += ["weight_mean", "weight_ess"]
             if self.has_actor:
-                keys += ["loss_actor", "actor_q_mean"]
+                keys += ["loss_actor", "actor_q_mean", "actor_q_abs_mean"]
                 if self.bc_alpha is not None:
                     keys.append("bc_loss")
             self._out_keys = keys
@@ -755,7 +756,7 @@ class WeightedBellmanLoss(LossModule):
         q_actor = per_sample(self._call("value_network", self.value_network_params, q_inputs, batch, detach=True),
                              batch, key)
         per_sample_loss = -q_actor
-        diagnostics = {"actor_q_mean": q_actor.detach().mean()}
+        diagnostics = {"actor_q_mean": q_actor.detach().mean(), "actor_q_abs_mean": q_actor.detach().abs().mean()}
         if self.bc_alpha is not None:
             action = get_entry(tensordict, self.tensor_keys.action, "the dataset action for behaviour cloning")
             if action.shape != mu.shape:

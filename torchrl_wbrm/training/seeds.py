@@ -485,7 +485,7 @@ class _QUpdate:
             figures = {k: v for k, v in diagnostics.items() if k == "bc_loss"}
             if expert_batch is not None:
                 self.cloning.buffer = _Given(expert_batch)
-                loss, bc = self.cloning(loss, diagnostics["actor_q_mean"].abs(), _Flat(p[_ACTOR]), batch)
+                loss, bc = self.cloning(loss, diagnostics["actor_q_abs_mean"], _Flat(p[_ACTOR]), batch)
                 figures.update(bc)
         return loss, figures
 
