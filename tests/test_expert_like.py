@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.references import tiny_lqr_config
+from tests.references import seed_group_after_stage_1, tiny_lqr_config
 from torchrl_wbrm.ratio import compute_density_ratio, expert_like_episodes
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 
@@ -90,15 +90,7 @@ def test_the_cloning_set_is_s_e_and_the_selected_episodes_of_d(tmp_path, algo):
 
 def test_the_seeds_clone_their_own_extended_sets(tmp_path):
     """Seeds in one process: each seed's S^e batches come from its own trainer's extended cloning set."""
-    from torchrl_wbrm.training.seeds import SeedGroup
-
-    cfg = tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True})
-    group = SeedGroup(cfg, tmp_path / "seeds", progress=False)
-    group._run_ratio()
-    for trainer in group.trainers:
-        trainer.ratio_fitter.best_network()
-        trainer.state = {"stage": "q", "step": 0}
-        trainer._build_q_buffer()
+    group = seed_group_after_stage_1(tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True}), tmp_path / "seeds")
     update = group.q_update()
     try:
         sizes = [len(t.algo.cloning.buffer) for t in group.trainers]

@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
-from tests.references import tiny_lqr_config
+from tests.references import seed_group_after_stage_1, tiny_lqr_config
 from torchrl_wbrm.algos.base import ExpertCloning
 from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
@@ -193,17 +193,12 @@ def test_the_setting_is_off_by_default_and_checked():
 def test_the_vectorised_actor_loss_is_each_seeds_own(tmp_path):
     """The seeds' vmapped actor step computes, for each seed, its own trainer's actor loss with the weighted term on
     that seed's D batch and stored ŵ."""
-    from torchrl_wbrm.training.seeds import SeedGroup, _expert_cloning, _Given, not_vectorised
+    from torchrl_wbrm.training.seeds import _expert_cloning, _Given, not_vectorised
 
     cfg = tiny_lqr_config(seeds=[0, 1], q={"expert_bc_weighted_d": True})
     assert not_vectorised(cfg) is None
-    group = SeedGroup(cfg, tmp_path / "seeds", progress=False)
+    group = seed_group_after_stage_1(cfg, tmp_path / "seeds")
     assert group.refusal() is None
-    group._run_ratio()
-    for trainer in group.trainers:
-        trainer.ratio_fitter.best_network()
-        trainer.state = {"stage": "q", "step": 0}
-        trainer._build_q_buffer()
     update = group.q_update()
     try:
         batch, expert = update.sample(cfg.q.actor_delay)
