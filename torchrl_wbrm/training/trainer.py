@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
