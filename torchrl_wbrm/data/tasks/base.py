@@ -70,9 +70,7 @@ class Task(ABC):
     #: * ``q.expert_bc_alpha`` 1.0: the actor clones S^e's actions beside maximising Q, λ = α / mean|Q| as in
     #:   TD3+BC (``algos.base.ExpertCloning``): without a term that keeps μ on the data's support every
     #:   Bellman-residual actor pushes off the data on standard tasks (Pendulum-v1, seed 0: −841 without, −141 with
-    #:   α 2.5). α 1, not TD3+BC's 2.5 (set for cloning mixed-quality D): S^e is the expert's, and at 2.5 the Q term
-    #:   pulled LunarLanderContinuous-v3's actor off the expert after 1,000-1,500 steps (seeds 1, 2: normalised
-    #:   47 and 7; at 1.0: 98 and 95);
+    #:   α 2.5). α 1, not TD3+BC's 2.5, which is set for cloning mixed-quality D: S^e is the expert's;
     #: * ``q.normalise_observations``: networks see ``(x − mean) / std`` of D's observations (gymnasium observations
     #:   differ in scale by orders of magnitude across dimensions);
     #: * ``q.activation`` GELU, ``q.steps`` 3000, ``q.eval_every`` 500;
