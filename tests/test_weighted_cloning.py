@@ -135,18 +135,16 @@ def test_the_step_weighs_the_q_term_by_the_mean_of_abs_q():
     q_loss, diagnostics = loss.actor_loss(batch)
     torch.testing.assert_close(diagnostics["actor_q_abs_mean"], q.abs().mean())
     torch.testing.assert_close(diagnostics["actor_q_mean"], q.mean())
-    cloning = _cloning(actor, expert, spec)
     seen = {}
 
-    def spy(loss_q, q_abs_mean, params, batch=None):
+    def spy(loss_q, q_abs_mean, params, batch=None):  # stands in for ExpertCloning: records what the step hands it
         seen["q_abs_mean"] = q_abs_mean
         return loss_q, {}
 
-    cloning.__class__ = type("Spy", (ExpertCloning,), {"__call__": lambda self, *a, **k: spy(*a, **k)})
     cfg = OmegaConf.create({"q": {"grad_clip": None, "actor_delay": 1}})
     optimisers = {"value": torch.optim.SGD(loss.value_network_params.values(True, True), lr=0.0),
                   "actor": torch.optim.SGD(loss.actor_network_params.values(True, True), lr=0.0)}
-    bellman_step(loss, optimisers, cfg, cloning=cloning)(batch, 0)
+    bellman_step(loss, optimisers, cfg, cloning=spy)(batch, 0)
     torch.testing.assert_close(seen["q_abs_mean"], diagnostics["actor_q_abs_mean"])
 
 

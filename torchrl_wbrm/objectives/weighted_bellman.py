@@ -146,8 +146,8 @@ class WeightedBellmanLoss(LossModule):
 
     Output: ``"loss_value"``, ``"loss_actor"`` (with an actor) and detached diagnostics ``"td_error_mean"``,
     ``"td_error_abs_mean"``, ``"q_mean"`` (mean Q(x, a)), ``"target_value_mean"``, with weights ``"weight_mean"``
-    and ``"weight_ess"`` (Kish (Σŵ)²/Σŵ²), with an actor ``"actor_q_mean"`` and ``"actor_q_abs_mean"`` (the batch means of Q(x, μ(x)) and of its absolute
-    value) and, with ``bc_alpha``, ``"bc_loss"``.
+    and ``"weight_ess"`` (Kish (Σŵ)²/Σŵ²), with an actor ``"actor_q_mean"`` and ``"actor_q_abs_mean"`` (the batch
+    means of Q(x, μ(x)) and of its absolute value) and, with ``bc_alpha``, ``"bc_loss"``.
     ``forward`` writes ``δ²`` (detached, shape ``[*B, 1]``) into the input under ``"td_error"`` as DQNLoss does;
     no other input entry is changed.
 

@@ -524,16 +524,15 @@ def validate_config(cfg, task: Task | None = None) -> None:
     if cfg.q.bc_alpha and cfg.q.expert_bc_alpha:
         raise ValueError(f"q.bc_alpha={cfg.q.bc_alpha} (cloning D's actions) and q.expert_bc_alpha="
                          f"{cfg.q.expert_bc_alpha} (cloning S^e's) are both on: set one of them to 0.")
-    if cfg.q.expert_bc_weighted_d and not cfg.q.expert_bc_alpha:
-        raise ValueError("q.expert_bc_weighted_d=true adds the ŵ-weighted cloning of D to the actor's S^e cloning "
-                         f"term, which is off (q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
-    if cfg.q.expert_bc_weighted_d and cfg.algo not in ("wbrm", "brm"):
-        raise ValueError(f"q.expert_bc_weighted_d=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
-    if cfg.q.expert_bc_from_d and not cfg.q.expert_bc_alpha:
-        raise ValueError("q.expert_bc_from_d=true adds D's expert-like episodes to the actor's S^e cloning term, "
-                         f"which is off (q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
-    if cfg.q.expert_bc_from_d and cfg.algo not in ("wbrm", "brm"):
-        raise ValueError(f"q.expert_bc_from_d=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
+    for key, what in (("q.expert_bc_weighted_d", "the ŵ-weighted cloning of D"),
+                      ("q.expert_bc_from_d", "D's expert-like episodes")):
+        if not _get(cfg, key):
+            continue
+        if not cfg.q.expert_bc_alpha:
+            raise ValueError(f"{key}=true adds {what} to the actor's S^e cloning term, which is off "
+                             f"(q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
+        if cfg.algo not in ("wbrm", "brm"):
+            raise ValueError(f"{key}=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)

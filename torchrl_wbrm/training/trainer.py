@@ -105,6 +105,12 @@ def step_schedulers(schedulers: dict) -> None:
             scheduler.step()
 
 
+def _need_episode_ids(d: TensorDictBase, setting: str, instead: str) -> None:
+    """Refuse ``setting`` in one line where D holds no episode ids (key ``"episode"``)."""
+    if "episode" not in d.keys():
+        raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: {instead}.")
+
+
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
     """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
     created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
@@ -434,9 +440,7 @@ class WBRMTrainer:
         rc = self.cfg.ratio
         expert_like = self._expert_like(d, w) if self.cfg.q.expert_bc_from_d else {}
         if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
-            if "episode" not in d.keys():
-                raise ValueError("ratio.aggregate='episode' needs D's episode ids (key 'episode'), which these data "
-                                 "do not hold: use ratio.aggregate=transition.")
+            _need_episode_ids(d, "ratio.aggregate='episode'", "use ratio.aggregate=transition")
             w = episode_weights(w, d["episode"])
         try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
             w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
@@ -455,9 +459,7 @@ class WBRMTrainer:
         (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``) beside S^e. Returns the figures recorded
         with the weights: how many episodes and rows were added, and, where the data name D's true expert episodes,
         how many of the added episodes are among them and how many of them D holds."""
-        if "episode" not in d.keys():
-            raise ValueError("q.expert_bc_from_d=true selects D's expert-like episodes, which needs D's episode ids "
-                             "(key 'episode'); these data do not hold them: set q.expert_bc_from_d=false.")
+        _need_episode_ids(d, "q.expert_bc_from_d=true", "set q.expert_bc_from_d=false")
         cloning = self.algo.cloning
         if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
             raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
