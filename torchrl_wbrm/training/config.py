@@ -550,10 +550,22 @@ def validate_config(cfg, task: Task | None = None) -> None:
     validate_run_settings(cfg, task)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
 
 
+#: what :func:`register_configs` last stored: the ConfigStore and the registered algos (name and spec object)
+_stored: tuple | None = None
+
+
 def register_configs() -> None:
     """Store the recipes' schemas and every registered algo's node of the ``algo`` group (``algo/<name>``: it sets
-    ``algo`` and ``baselines.<name>``) in Hydra's ``ConfigStore``."""
+    ``algo`` and ``baselines.<name>``) in Hydra's ``ConfigStore``.
+
+    Storing costs about 50 ms (each node is made an OmegaConf node), and a study composes a config per run; so the
+    nodes are stored again only when the registered algos, or the store, changed since the last call."""
+    global _stored
     cs = ConfigStore.instance()
+    stored = (id(cs), tuple((name, id(spec)) for name, spec in ALGOS.items()))
+    if stored == _stored and "base_wbrm_offline.yaml" in cs.repo and "base_make_dataset.yaml" in cs.repo:
+        return
     cs.store(name="base_wbrm_offline", node=WBRMConfig)
     cs.store(name="base_make_dataset", node=MakeDatasetConfig)
     store_algo_configs(cs, BaselinesConfig)
+    _stored = stored
