@@ -44,6 +44,8 @@ FEW_DEMONSTRATION_METHODS = {
     "bc_union": ["algo=bc", "baselines.bc.data=union"],      # cloning S^e ∪ D
     # cloning S^e ∪ D, D's rows weighted by the untempered ŵ (as ISW-BC weights by its ratio)
     "bc_weighted": ["algo=bc", "baselines.bc.data=weighted", "ratio.temper=1"],
+    # cloning S^e and D's expert-like episodes, as the stage-1 ŵ finds them (ŵ ≡ 1 finds none: "bc")
+    "bc_expert_like": ["algo=bc", "baselines.bc.data=expert_like"],
     "td3bc": ["algo=td3bc"],
     "iql": ["algo=iql"],
     "cql": ["algo=cql"],
@@ -144,6 +146,49 @@ def few_demonstrations_report(out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def few_demonstrations_plot(out: Path) -> Path | None:
+    """``few_demonstrations.png``: per task and expert share of ``D`` (a panel each), the normalised score against
+    ``S^e``'s number of episodes, one line per method (mean and 95% Student-t interval over the seeds), at the default
+    budget; dotted: the expert (100) and random actions (0). ``None`` (nothing drawn) when no cell has runs."""
+    import re
+
+    import matplotlib.pyplot as plt
+
+    from torchrl_wbrm.evaluation.stats import mean_ci
+    from torchrl_wbrm.training.plots import save_figure
+    from torchrl_wbrm.training.reporting import load_results, split_by_status
+
+    records, _ = split_by_status(load_results(out))
+    scores: dict[tuple, dict[str, dict[int, list[float]]]] = {}
+    for rec in records:
+        study = rec.get("study", {})
+        match = re.fullmatch(r"se(\d+)_expert(\d+)", str(study.get("cell", "")))  # default budget only
+        score = rec.get("final", {}).get("normalised_score")
+        if match and isinstance(score, (int, float)):
+            panel = scores.setdefault((study["task"], match.group(2)), {})
+            panel.setdefault(study["method"], {}).setdefault(int(match.group(1)), []).append(score)
+    if not scores:
+        return None
+    order = list(FEW_DEMONSTRATION_METHODS)
+    fig, axes = plt.subplots(1, len(scores), figsize=(5.2 * len(scores), 3.8), squeeze=False)
+    for ax, ((task, share), methods) in zip(axes[0], sorted(scores.items())):
+        for method in sorted(methods, key=lambda m: order.index(m) if m in order else len(order)):
+            sizes = sorted(methods[method])
+            cis = [mean_ci(methods[method][n]) for n in sizes]
+            ax.errorbar(sizes, [c.mean for c in cis], yerr=[c.half_width for c in cis], marker="o", capsize=3,
+                        label=f"{method} ({'/'.join(str(len(methods[method][n])) for n in sizes)} seeds)")
+        for level in (0.0, 100.0):
+            ax.axhline(level, color="k", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_xticks(sorted({n for m in methods.values() for n in m}))
+        ax.set_xticklabels([str(n) for n in ax.get_xticks()])
+        ax.set_xlabel("S^e: expert episodes")
+        ax.set_ylabel("normalised score (0 random, 100 expert)")
+        ax.set_title(f"{task}, D {int(share)}% expert episodes", fontsize=10)
+        ax.legend(fontsize=7)
+    return save_figure(fig, out / "few_demonstrations.png")
+
+
 def benchmark_report(out: Path) -> str:
     """``tables.md``'s text from every run under ``out``."""
     from torchrl_wbrm.training.reporting import ci_cell, load_results, split_by_status
@@ -235,8 +280,9 @@ def main(argv=None) -> None:
 
     budget = ("the task's default `q.steps`" if few else
               ", ".join(f"×{b}" for b in args.budgets) + " the task's default `q.steps`")
+    figure = few_demonstrations_plot(out) if few else None
     publish_study("few_demonstrations" if few else "benchmark", out / "tables.md",
-                  docs_dir_from_args(args.docs_dir, args.quick),
+                  docs_dir_from_args(args.docs_dir, args.quick), figures=[figure],
                   seeds={r["seed"] for r in load_results(out) if "seed" in r},
                   argv=None if argv is None else [sys.argv[0], *argv],
                   budget=budget

@@ -66,14 +66,14 @@ def test_oracle_is_refused_in_one_line_where_the_data_do_not_say():
         cloned_data("expert", d, e)
 
 
-def test_the_setting_is_checked_and_stage_1_runs_only_for_weighted():
+def test_the_setting_is_checked_and_stage_1_runs_only_for_the_ratios_settings():
     with pytest.raises(ValueError, match=r"^baselines\.bc\.data='everything' is not allowed: choose one of "
-                                         r"\['expert', 'union', 'weighted', 'oracle'\]\.$"):
+                                         r"\['expert', 'union', 'weighted', 'expert_like', 'oracle'\]\.$"):
         validate_config(tiny_lqr_config(algo="bc", baselines={"bc": {"data": "everything"}}))
     for data in BC_DATA:
         cfg = tiny_lqr_config(algo="bc", baselines={"bc": {"data": data}})
         validate_config(cfg)
-        assert get_algo("bc").fits_ratio_for(cfg) is (data == "weighted")
+        assert get_algo("bc").fits_ratio_for(cfg) is (data in ("weighted", "expert_like"))
         assert get_algo("wbrm").fits_ratio_for(cfg) and not get_algo("brm").fits_ratio_for(cfg)
     assert tiny_lqr_config(algo="bc").baselines.bc.data == "expert"  # the default is unchanged
 

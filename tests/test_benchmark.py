@@ -274,15 +274,20 @@ def test_few_demonstration_table_quick(pendulum, tmp_path):
             "--jobs", "1", "--data-path", str(pendulum[0]), "--out", str(tmp_path / "out")]
     with pytest.raises(ValueError, match="--methods sac: not a method of the few-demonstration table"):
         module.main([*args, "--methods", "sac"])
-    module.main([*args, "--methods", "bc_weighted", "bc_oracle"])
+    module.main([*args, "--methods", "bc_weighted", "bc_expert_like", "bc_oracle"])
     table = (tmp_path / "out" / "tables.md").read_text()
     rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| pendulum |")]
     assert [(r[1], r[2], r[3]) for r in rows] == [("se1_expert10", "bc_weighted", "1"),
+                                                  ("se1_expert10", "bc_expert_like", "1"),
                                                   ("se1_expert10", "bc_oracle", "1")]
+    png = tmp_path / "out" / "few_demonstrations.png"  # the score against S^e's size, a line per method
+    assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert all(float(r[4]) == float(r[4]) for r in rows)  # a finite normalised score
     out = tmp_path / "out" / "pendulum" / "se1_expert10"
     weighted = json.loads((out / "bc_weighted" / "seed0" / "results.json").read_text())
     assert weighted["ratio"]["source"] == "learned" and weighted["ratio"]["steps_run"] > 0
+    expert_like = json.loads((out / "bc_expert_like" / "seed0" / "results.json").read_text())
+    assert expert_like["ratio"]["source"] == "learned" and "expert_like_episodes" in expert_like["weights"]
     oracle = json.loads((out / "bc_oracle" / "seed0" / "results.json").read_text())
     assert oracle["ratio"]["source"] == "none" and oracle["config"]["baselines"]["bc"]["data"] == "oracle"
 

@@ -88,6 +88,30 @@ def test_the_cloning_set_is_s_e_and_the_selected_episodes_of_d(tmp_path, algo):
         trainer.release()
 
 
+@pytest.mark.parametrize("source", ["learned", "none"])
+def test_bc_clones_s_e_and_the_episodes_the_raw_ratio_selects(tmp_path, source):
+    """``algo=bc baselines.bc.data=expert_like``: the cloned rows are D's rows of the episodes the rule selects from
+    the raw ŵ, then S^e's, every weight 1; ``ratio.source=none`` (ŵ ≡ 1) selects none, so S^e alone is cloned."""
+    cfg = tiny_lqr_config(algo="bc", baselines={"bc": {"data": "expert_like"}}, ratio={"source": source})
+    trainer = _after_stage_1(cfg, tmp_path / source)
+    try:
+        d, expert = trainer.q_train_data, trainer.datasets.expert_samples[:]
+        if source == "none":
+            assert trainer.ratio_network is None
+            want = torch.zeros(d.shape[0], dtype=torch.bool)
+        else:
+            want = expert_like_episodes(compute_density_ratio(trainer.ratio_network, d, chunk_size=8192),
+                                        d["episode"])
+            assert 0 < int(want.sum()) < d.shape[0]  # this fit selects some episodes, not all
+        cloned = trainer.q_buffer[:]
+        for key in ("observation", "action"):
+            torch.testing.assert_close(cloned[key], torch.cat([d[key][want], expert[key]]))
+        assert (cloned["density_ratio"] == 1).all()
+        assert trainer.weight_stats["expert_like_rows"] == int(want.sum())
+    finally:
+        trainer.release()
+
+
 def test_the_seeds_clone_their_own_extended_sets(tmp_path):
     """Seeds in one process: each seed's S^e batches come from its own trainer's extended cloning set."""
     group = seed_group_after_stage_1(tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True}), tmp_path / "seeds")

@@ -85,6 +85,9 @@ class Algo:
         uses_ratio: the method reads the stage-1 weights ŵ (only ``wbrm``).
         cloning: the actor's S^e cloning term (:class:`ExpertCloning`, ``q.expert_bc_alpha``), which the trainer
             extends with D's expert-like episodes after stage 1 (``q.expert_bc_from_d``); ``None``: none.
+        marks_expert_like: the trainer marks the rows of D's expert-like episodes
+            (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ŵ) under the key ``"expert_like"`` before
+            ``map_data`` (``bc`` with ``baselines.bc.data=expert_like``).
     """
 
     loss: LossModule
@@ -97,6 +100,7 @@ class Algo:
     bellman_loss: WeightedBellmanLoss | None = None
     uses_ratio: bool = False
     cloning: "ExpertCloning | None" = None
+    marks_expert_like: bool = False
 
 
 # ---------------------------------------------------------------------- shared pieces

@@ -1,5 +1,6 @@
-"""Behaviour cloning (a reference, not offline RL): of S^e, of S^e ∪ D, of S^e ∪ D weighted by the stage-1 ŵ, or of
-S^e and D's true expert episodes (``baselines.bc.data``)."""
+"""Behaviour cloning (a reference, not offline RL): of S^e, of S^e ∪ D, of S^e ∪ D weighted by the stage-1 ŵ, of
+S^e and D's expert-like episodes as the stage-1 ŵ finds them, or of S^e and D's true expert episodes
+(``baselines.bc.data``)."""
 from __future__ import annotations
 
 import warnings
@@ -14,7 +15,7 @@ from torchrl_wbrm.algos.registry import register_algo
 from torchrl_wbrm.objectives.functional import action_cloning
 
 #: ``baselines.bc.data``: what is cloned
-BC_DATA = ("expert", "union", "weighted", "oracle")
+BC_DATA = ("expert", "union", "weighted", "expert_like", "oracle")
 
 
 @dataclass
@@ -28,8 +29,12 @@ class BCConfig:
             self-normalisation, as ``wbrm`` gets it; stage 1 runs for it) and each row of S^e by 1, the loss
             self-normalised over the batch: importance-weighted cloning of the union, as ISW-BC (Li et al., NeurIPS
             2023) clones D ∪ S^e weighted by a ratio d^e/d^union. ``ratio.source=none`` makes every weight 1 (the
-            ŵ ≡ 1 control, ``"union"``). ``"oracle"``: S^e and D's true expert episodes, an upper reference that
-            needs data that say which episodes are the expert's (the benchmark's, metadata ``expert_episode_ids``).
+            ŵ ≡ 1 control, ``"union"``). ``"expert_like"``: S^e and D's expert-like episodes, every row alike: the
+            episodes whose raw stage-1 ŵ, self-normalised over D, has a geometric mean above 1
+            (:func:`~torchrl_wbrm.ratio.expert_like_episodes`, as ``q.expert_bc_from_d`` finds them; D needs episode
+            ids). ``ratio.source=none`` finds none (the ŵ ≡ 1 control: ``"expert"``). ``"oracle"``: S^e and D's true
+            expert episodes, an upper reference that needs data that say which episodes are the expert's (the
+            benchmark's, metadata ``expert_episode_ids``).
     """
 
     data: str = "expert"
@@ -45,15 +50,16 @@ def _check(settings: BCConfig, key: str) -> None:
 
 
 def _fits_ratio(cfg) -> bool:
-    return cfg.baselines.bc.data == "weighted"
+    return cfg.baselines.bc.data in ("weighted", "expert_like")
 
 
 def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
                 expert_episode_ids: list[int] | None = None, weight_key: str = "density_ratio") -> TensorDictBase:
     """The rows ``baselines.bc.data`` clones, beside S^e: ``expert`` S^e's ``"observation"`` and ``"action"``,
     ``behaviour`` D's (with its stored weights under ``weight_key`` and its ``"episode"`` ids). Returns S^e's rows
-    after D's (``"union"``, ``"weighted"``) or D's rows of the episodes ``expert_episode_ids`` (``"oracle"``), with
-    ``weight_key`` D's stored weight (``"weighted"``) or 1 (S^e's rows, and every row of the other settings).
+    after D's (``"union"``, ``"weighted"``), D's rows marked ``"expert_like"`` by the trainer (``"expert_like"``) or
+    D's rows of the episodes ``expert_episode_ids`` (``"oracle"``), with ``weight_key`` D's stored weight
+    (``"weighted"``) or 1 (S^e's rows, and every row of the other settings).
 
         >>> import torch
         >>> from tensordict import TensorDict
@@ -63,6 +69,9 @@ def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
         >>> cloned_data("weighted", d, e)["density_ratio"].flatten().tolist()
         [2.0, 2.0, 0.10000000149011612, 0.10000000149011612, 1.0]
         >>> cloned_data("oracle", d, e, expert_episode_ids=[1])["density_ratio"].flatten().tolist()
+        [1.0, 1.0, 1.0]
+        >>> d["expert_like"] = torch.tensor([True, True, False, False])
+        >>> cloned_data("expert_like", d, e)["density_ratio"].flatten().tolist()
         [1.0, 1.0, 1.0]
     """
     if data not in BC_DATA[1:]:
@@ -75,6 +84,11 @@ def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
         if "episode" not in behaviour.keys():
             raise ValueError("baselines.bc.data=oracle needs D's episode ids (key 'episode'), which these data lack.")
         d = d[torch.isin(behaviour["episode"], torch.as_tensor(list(expert_episode_ids), dtype=torch.int64))]
+    elif data == "expert_like":
+        if "expert_like" not in behaviour.keys():
+            raise ValueError("baselines.bc.data=expert_like clones the rows the trainer marks 'expert_like' after "
+                             "stage 1; these data have no such key.")
+        d = d[behaviour["expert_like"].reshape(-1).bool()]
     weight = d[weight_key]
     if data != "weighted":
         d.set(weight_key, torch.ones_like(weight))
@@ -125,7 +139,8 @@ def build_bc(ctx: AlgoContext) -> Algo:
             return {"loss_bc": loss_bc.detach()}
 
     return Algo(loss=loss, optimisers=optimisers, step=step, policy=actor, map_data=map_data,
-                uses_ratio=settings.data == "weighted")
+                uses_ratio=settings.data in ("weighted", "expert_like"),
+                marks_expert_like=settings.data == "expert_like")
 
 
 def _bc_step(loss: BCLoss, optimisers: dict):

@@ -438,7 +438,11 @@ class WBRMTrainer:
         else:
             w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
-        expert_like = self._expert_like(d, w) if self.cfg.q.expert_bc_from_d else {}
+        expert_like = {}
+        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like:
+            rows, expert_like = self._expert_like(d, w)
+            if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
+                d.set("expert_like", rows.reshape(d.shape))
         if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
             _need_episode_ids(d, "ratio.aggregate='episode'", "use ratio.aggregate=transition")
             w = episode_weights(w, d["episode"])
@@ -454,18 +458,21 @@ class WBRMTrainer:
         self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
-    def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> dict:
-        """``q.expert_bc_from_d``: the actor's cloning term gets D's expert-like episodes
-        (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``) beside S^e. Returns the figures recorded
-        with the weights: how many episodes and rows were added, and, where the data name D's true expert episodes,
-        how many of the added episodes are among them and how many of them D holds."""
-        _need_episode_ids(d, "q.expert_bc_from_d=true", "set q.expert_bc_from_d=false")
-        cloning = self.algo.cloning
-        if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
-            raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
-                             f"{self.cfg.algo} does not have.")
+    def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``): with
+        ``q.expert_bc_from_d`` the actor's cloning term gets them beside S^e. Returns their row mask and the figures
+        recorded with the weights: how many episodes and rows they hold, and, where the data name D's true expert
+        episodes, how many of them are among those and how many of those D holds."""
+        setting = ("q.expert_bc_from_d=true", "set q.expert_bc_from_d=false") if self.cfg.q.expert_bc_from_d else (
+            "baselines.bc.data=expert_like", "choose another baselines.bc.data")
+        _need_episode_ids(d, *setting)
         rows = expert_like_episodes(w, d["episode"])
-        cloning.add_expert_like(d[rows])
+        if self.cfg.q.expert_bc_from_d:
+            cloning = self.algo.cloning
+            if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
+                raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
+                                 f"{self.cfg.algo} does not have.")
+            cloning.add_expert_like(d[rows])
         episodes = d["episode"].reshape(-1)[rows].unique()
         figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
         true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
@@ -473,7 +480,7 @@ class WBRMTrainer:
             true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
             figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
             figures["true_expert_episodes"] = int(torch.isin(d["episode"].reshape(-1).unique(), true_ids).sum())
-        return figures
+        return rows, figures
 
     def _check_ratio(self, w: torch.Tensor) -> dict:
         """Stage 1's outcome, as the fitter judges it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`, the one
