@@ -112,6 +112,28 @@ def test_bc_clones_s_e_and_the_episodes_the_raw_ratio_selects(tmp_path, source):
         trainer.release()
 
 
+@pytest.mark.parametrize("layer, setting", [
+    ({"q": {"expert_bc_from_d": True}}, r"q\.expert_bc_from_d=true"),
+    ({"algo": "bc", "baselines": {"bc": {"data": "expert_like"}}}, r"algo=bc's cloning of D's expert-like episodes"),
+    ({"ratio": {"aggregate": "episode"}}, r"ratio\.aggregate='episode'"),
+])
+def test_a_setting_that_reads_ds_episodes_is_refused_before_stage_1_on_data_without_ids(tmp_path, monkeypatch, layer,
+                                                                                       setting):
+    from torchrl_wbrm.training import WBRMTrainer
+
+    setup_data = WBRMTrainer._setup_data
+
+    def without_ids(self):
+        setup_data(self)
+        self.q_train_data = self.q_train_data.exclude("episode")
+
+    monkeypatch.setattr(WBRMTrainer, "_setup_data", without_ids)
+    WBRMTrainer(tiny_lqr_config(), tmp_path / "defaults", progress=False).release()  # ŵ per transition: no ids read
+    with pytest.raises(ValueError, match=rf"^{setting} needs D's episode ids \(key 'episode'\), which these data do "
+                                         r"not hold: .+\.$"):
+        WBRMTrainer(tiny_lqr_config(layer), tmp_path / "run", progress=False)
+
+
 def test_the_seeds_clone_their_own_extended_sets(tmp_path):
     """Seeds in one process: each seed's S^e batches come from its own trainer's extended cloning set."""
     group = seed_group_after_stage_1(tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True}), tmp_path / "seeds")

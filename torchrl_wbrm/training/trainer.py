@@ -105,11 +105,6 @@ def step_schedulers(schedulers: dict) -> None:
             scheduler.step()
 
 
-def _need_episode_ids(d: TensorDictBase, setting: str, instead: str) -> None:
-    """Refuse ``setting`` in one line where D holds no episode ids (key ``"episode"``)."""
-    if "episode" not in d.keys():
-        raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: {instead}.")
-
 
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
     """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
@@ -196,11 +191,29 @@ class WBRMTrainer:
         self._setup_data()
         self._setup_ratio()
         self._setup_q()
+        self._check_episode_ids()
         self._setup_evaluation()
         if resume:
             self._load_checkpoint()
 
     # ------------------------------------------------------------------ setup
+    def _check_episode_ids(self) -> None:
+        """Refuse, in one line and before stage 1, a setting that reads D's episodes on data without episode ids
+        (key ``"episode"``): ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes, and
+        ``ratio.aggregate='episode'`` where the algo reads a ratio."""
+        if "episode" in self.q_train_data.keys():
+            return
+        reads_ratio = self.algo.uses_ratio and self.cfg.ratio.source != "none"
+        for needed, setting, instead in (
+                (self.cfg.q.expert_bc_from_d, "q.expert_bc_from_d=true", "set q.expert_bc_from_d=false"),
+                (self.algo.marks_expert_like, f"algo={self.cfg.algo}'s cloning of D's expert-like episodes",
+                 "choose another of its settings"),
+                (reads_ratio and self.cfg.ratio.aggregate == "episode", "ratio.aggregate='episode'",
+                 "use ratio.aggregate=transition")):
+            if needed:
+                raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: "
+                                 f"{instead}.")
+
     def _setup_data(self) -> None:
         t0 = time.perf_counter()
         # self.task: everything env-specific (data, action box, γ, evaluator, truth)
@@ -444,7 +457,6 @@ class WBRMTrainer:
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
                 d.set("expert_like", rows.reshape(d.shape))
         if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
-            _need_episode_ids(d, "ratio.aggregate='episode'", "use ratio.aggregate=transition")
             w = episode_weights(w, d["episode"])
         try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
             w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
@@ -463,10 +475,7 @@ class WBRMTrainer:
         ``q.expert_bc_from_d`` the actor's cloning term gets them beside S^e. Returns their row mask and the figures
         recorded with the weights: how many episodes and rows they hold, and, where the data name D's true expert
         episodes, how many of them are among those and how many of those D holds."""
-        setting = ("q.expert_bc_from_d=true", "set q.expert_bc_from_d=false") if self.cfg.q.expert_bc_from_d else (
-            "baselines.bc.data=expert_like", "choose another baselines.bc.data")
-        _need_episode_ids(d, *setting)
-        rows = expert_like_episodes(w, d["episode"])
+        rows = expert_like_episodes(w, d["episode"])  # D's episode ids: checked before stage 1
         if self.cfg.q.expert_bc_from_d:
             cloning = self.algo.cloning
             if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
