@@ -16,6 +16,8 @@ from torchrl_wbrm.objectives.functional import action_cloning
 
 #: ``baselines.bc.data``: what is cloned
 BC_DATA = ("expert", "union", "weighted", "expert_like", "oracle")
+#: the settings that read the stage-1 ŵ (stage 1 runs for them)
+READS_RATIO = ("weighted", "expert_like")
 
 
 @dataclass
@@ -50,7 +52,7 @@ def _check(settings: BCConfig, key: str) -> None:
 
 
 def _fits_ratio(cfg) -> bool:
-    return cfg.baselines.bc.data in ("weighted", "expert_like")
+    return cfg.baselines.bc.data in READS_RATIO
 
 
 def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
@@ -139,7 +141,7 @@ def build_bc(ctx: AlgoContext) -> Algo:
             return {"loss_bc": loss_bc.detach()}
 
     return Algo(loss=loss, optimisers=optimisers, step=step, policy=actor, map_data=map_data,
-                uses_ratio=settings.data in ("weighted", "expert_like"),
+                uses_ratio=settings.data in READS_RATIO,
                 marks_expert_like=settings.data == "expert_like")
 
 

@@ -105,7 +105,6 @@ def step_schedulers(schedulers: dict) -> None:
             scheduler.step()
 
 
-
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
     """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
     created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
@@ -191,16 +190,21 @@ class WBRMTrainer:
         self._setup_data()
         self._setup_ratio()
         self._setup_q()
-        self._check_episode_ids()
+        self._check_d_settings()
         self._setup_evaluation()
         if resume:
             self._load_checkpoint()
 
     # ------------------------------------------------------------------ setup
-    def _check_episode_ids(self) -> None:
-        """Refuse, in one line and before stage 1, a setting that reads D's episodes on data without episode ids
-        (key ``"episode"``): ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes, and
+    def _check_d_settings(self) -> None:
+        """Refuse, in one line and before stage 1, a setting this run cannot carry out after it: ``q.expert_bc_from_d``
+        for an algo without the S^e cloning term, and, on data without episode ids (key ``"episode"``), a setting that
+        reads D's episodes: ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes, and
         ``ratio.aggregate='episode'`` where the algo reads a ratio."""
+        if self.cfg.q.expert_bc_from_d and self.algo.cloning is None:  # validate_config refuses it for the built-in
+            # algos without the S^e cloning term; a custom algo may lack one
+            raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
+                             f"{self.cfg.algo} does not have.")
         if "episode" in self.q_train_data.keys():
             return
         reads_ratio = self.algo.uses_ratio and self.cfg.ratio.source != "none"
@@ -454,6 +458,8 @@ class WBRMTrainer:
         expert_like = {}
         if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like:
             rows, expert_like = self._expert_like(d, w)
+            if self.cfg.q.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
+                self.algo.cloning.add_expert_like(d[rows])
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
                 d.set("expert_like", rows.reshape(d.shape))
         if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
@@ -471,17 +477,10 @@ class WBRMTrainer:
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``): with
-        ``q.expert_bc_from_d`` the actor's cloning term gets them beside S^e. Returns their row mask and the figures
-        recorded with the weights: how many episodes and rows they hold, and, where the data name D's true expert
-        episodes, how many of them are among those and how many of those D holds."""
+        """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``). Returns their
+        row mask and the figures recorded with the weights: how many episodes and rows they hold, and, where the data
+        name D's true expert episodes, how many of them are among those and how many of those D holds."""
         rows = expert_like_episodes(w, d["episode"])  # D's episode ids: checked before stage 1
-        if self.cfg.q.expert_bc_from_d:
-            cloning = self.algo.cloning
-            if cloning is None:  # validate_config refuses it without the S^e cloning term; a custom algo may lack one
-                raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
-                                 f"{self.cfg.algo} does not have.")
-            cloning.add_expert_like(d[rows])
         episodes = d["episode"].reshape(-1)[rows].unique()
         figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
         true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
