@@ -164,7 +164,9 @@ def _forget_learning_runs():
 def _learned(algo: str) -> dict:
     """Train ``algo`` once (shared by the regret and the Q̂ tests); returns its trainer, figures and the baselines."""
     torch.set_num_threads(1)
-    cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []))
+    if not _RUN_DIRS:  # the runs' one dataset (LQR exp1, seed 0): collected by the first, loaded by the others
+        _RUN_DIRS.append(tempfile.mkdtemp(prefix="learn_data_cache_"))
+    cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []), f"data_cache={_RUN_DIRS[0]}")
     _RUN_DIRS.append(tempfile.mkdtemp(prefix=f"learn_{algo}_"))
     trainer = WBRMTrainer(cfg, _RUN_DIRS[-1], progress=False)
     results = trainer.run()
