@@ -156,17 +156,23 @@ def _forget_learning_runs():
     would then drop the cache between this module's tests and train again)."""
     yield
     _learned.cache_clear()
+    _data_cache.cache_clear()
     for run_dir in _RUN_DIRS:
         shutil.rmtree(run_dir, ignore_errors=True)
+
+
+@functools.cache
+def _data_cache() -> str:
+    """The learning runs' one dataset (LQR exp1, seed 0): collected by the first run, loaded by the others."""
+    _RUN_DIRS.append(tempfile.mkdtemp(prefix="learn_data_cache_"))
+    return _RUN_DIRS[-1]
 
 
 @functools.cache
 def _learned(algo: str) -> dict:
     """Train ``algo`` once (shared by the regret and the Q̂ tests); returns its trainer, figures and the baselines."""
     torch.set_num_threads(1)
-    if not _RUN_DIRS:  # the runs' one dataset (LQR exp1, seed 0): collected by the first, loaded by the others
-        _RUN_DIRS.append(tempfile.mkdtemp(prefix="learn_data_cache_"))
-    cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []), f"data_cache={_RUN_DIRS[0]}")
+    cfg = compose_recipe(f"algo={algo}", *LEARN_BUDGET, *EXTRA.get(algo, []), f"data_cache={_data_cache()}")
     _RUN_DIRS.append(tempfile.mkdtemp(prefix=f"learn_{algo}_"))
     trainer = WBRMTrainer(cfg, _RUN_DIRS[-1], progress=False)
     results = trainer.run()

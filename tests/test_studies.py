@@ -79,12 +79,12 @@ def test_paper_tables_quick(tmp_path):
     steps, on lqr_exp1)."""
     run_study_here("paper_tables.py", "--envs", "lqr_exp1", "mountain_car", "--algos", *TABLE_ALGOS,
                    "--budget-steps", "20", "--out", str(tmp_path))
-    algos = TABLE_ALGOS
+    algos = set(TABLE_ALGOS)
     finished = {(p.parents[1].parent.name, p.parents[1].name) for p in tmp_path.glob("*/*/seed0/results.json")}
     assert finished == {(env, a) for env in ("lqr_exp1", "mountain_car") for a in algos}
     checked = {p.parents[1].name for p in (tmp_path.parent / f"{tmp_path.name}_budget_check" / "steps20").glob(
         "lqr_exp1/*/seed0/results.json")}
-    assert checked == set(algos)
+    assert checked == algos
     tables = (tmp_path / "tables.md").read_text()
     assert "Table 2 (LQR)" in tables and "Table 3 (MountainCarContinuous-v0)" in tables
     assert all(f"| {a} |" in tables for a in algos) and "85.435" in tables  # the exact optimum row
