@@ -20,8 +20,8 @@ longer run does not lose return. Runs go through the studies' shared runner
 ``<out>/<task>/<algo>/x<budget>/seed<seed>``; a finished run is not run again. ``tables.md`` then gives, per task
 and algorithm, the normalised score (0 = uniform random actions, 100 = the expert; the datasets' Minari reference
 scores) as mean ± 95% CI over seeds, the raw return, the behaviour data's own score, how many runs were flagged
-(``q_blow_up``, ``below_behaviour``, ``ratio_collapse``) and the wall seconds per run (one torch thread, ``--jobs``
-processes at a time; seeds trained in one process share its time equally).
+(``q_blow_up``, ``below_behaviour``, ``return_fell``, ``ratio_collapse``) and the wall seconds per run (one torch
+thread, ``--jobs`` processes at a time; seeds trained in one process share its time equally).
 """
 from __future__ import annotations
 

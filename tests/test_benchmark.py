@@ -186,7 +186,8 @@ def test_a_run_draws_its_few_expert_episodes_by_its_seed(pendulum):
 @pytest.mark.slow
 def test_a_run_reports_the_normalised_score_and_flags_a_policy_below_its_data(pendulum, tmp_path):
     """A run of a few steps on the benchmark's Pendulum data: its results carry the normalised score on D4RL's scale
-    and, its policy being no better than random torques, the below_behaviour flag with its figures."""
+    and, its policy being no better than random torques, the below_behaviour flag with its figures; given an earlier
+    evaluation at the expert's return, the return_fell flag too."""
     from torchrl_wbrm.training import WBRMConfig, WBRMTrainer
     from torchrl_wbrm.data import EnvConfig
     from torchrl_wbrm.data.minari_data import MinariDataConfig
@@ -195,7 +196,8 @@ def test_a_run_reports_the_normalised_score_and_flags_a_policy_below_its_data(pe
     minari = MinariDataConfig(expert=row["expert"], behaviour=row["behaviour"], data_path=str(path))
     cfg = WBRMConfig(env=EnvConfig(name="minari", kind="minari", minari=minari), algo="brm", plots=False, threads=1)
     cfg.q.steps, cfg.q.eval_every, cfg.eval.episodes, cfg.eval.train_episodes = 2, 2, 3, 1
-    results = WBRMTrainer(cfg, tmp_path / "run", progress=False).run()
+    trainer = WBRMTrainer(cfg, tmp_path / "run", progress=False)
+    results = trainer.run()
     final = results["final"]
     expected = normalised_score(final["return"], row["ref_min_score"], row["ref_max_score"])
     assert final["normalised_score"] == pytest.approx(float(expected))
@@ -208,6 +210,40 @@ def test_a_run_reports_the_normalised_score_and_flags_a_policy_below_its_data(pe
 
     text = summarise(saved)
     assert "FLAG below_behaviour" in text and "normalised score" in text
+    assert "return_fell" not in results["flags"] and not results["return_check"]["fell"]  # one evaluation only
+    # return_fell, checked over the trainer's own evaluations: as if step 1 had scored the expert's return
+    trainer.history.insert(0, _evaluation(1, row["expert_return_mean"], 1.0))
+    results = trainer.results()
+    check = results["return_check"]
+    assert "return_fell" in results["flags"] and (check["best_step"], check["step"], check["return"]) == (1, 2, final["return"])
+    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert "return_fell" in saved["flags"] and "FLAG return_fell" in summarise(saved)
+
+
+def _evaluation(step, ret, ci):
+    return {"stage": "q", "step": step, "return": ret, "return_ci": ci}
+
+
+def test_return_fell_needs_disjoint_intervals_and_a_material_fall():
+    """The ``return_fell`` rule (:func:`~torchrl_wbrm.training.reporting.return_fell`), behaviour data at -100: the
+    best earlier evaluation 200 ± 10 (a gain of 300 over the data), so a quarter of the gain is 75."""
+    from torchrl_wbrm.training.reporting import RETURN_FALL_FRACTION, return_fell
+
+    assert RETURN_FALL_FRACTION == 0.25
+    data = {"behaviour_mean_return": -100.0}
+    history = [_evaluation(500, 150.0, 5.0), _evaluation(1000, 200.0, 10.0),
+               {"stage": "q_train", "step": 1000, "return": -1e9}]  # training records are not evaluations
+    check = return_fell([*history, _evaluation(1500, 100.0, 20.0)], data)
+    assert check["fell"] and (check["best_step"], check["best_return"], check["step"]) == (1000, 200.0, 1500)
+    assert not return_fell([*history, _evaluation(1500, 130.0, 70.0)], data)["fell"]  # the intervals overlap
+    assert not return_fell([*history, _evaluation(1500, 130.0, 1.0)], data)["fell"]  # disjoint, but 70 < 75
+    assert return_fell([*history, _evaluation(1500, 124.0, 1.0)], data)["fell"]  # 76 >= 75
+    assert not return_fell([*history, _evaluation(1500, 250.0, 1.0)], data)["fell"]  # it rose
+    assert not return_fell([*history, _evaluation(1500, 100.0, 20.0)], {})["fell"]  # no behaviour return (LQR)
+    assert not return_fell([*history, _evaluation(1500, float("nan"), 20.0)], data)["fell"]
+    assert not return_fell([_evaluation(1500, -1e9, 1.0)], data)["fell"]  # one evaluation
+    # below the data from the start: no gain over it to lose
+    assert not return_fell([_evaluation(500, -150.0, 1.0), _evaluation(1000, -300.0, 1.0)], data)["fell"]
 
 
 @pytest.mark.slow

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "split_by_status", "summarise"]
+__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "return_fell", "split_by_status", "summarise"]
 
 
 def _n(value, spec: str) -> str:
@@ -15,7 +15,8 @@ def _n(value, spec: str) -> str:
 
 def summarise(results: dict) -> str:
     """A few lines: the final evaluation against the exact optimum (LQR) or the mean return (MountainCar), and any
-    flag (a diverged run, a Q̂ blow-up, a collapsed stage 1, a stage 1 worse than ŵ ≡ 1)."""
+    flag (a diverged run, a Q̂ blow-up, a collapsed stage 1, a stage 1 worse than ŵ ≡ 1, a return that fell as
+    training went on)."""
     f = results.get("final", {})
     w = results.get("weights", {})
     algo = results.get("algo", "wbrm")
@@ -82,6 +83,14 @@ def summarise(results: dict) -> str:
             f"is below the behaviour data's mean episode return {_n(below['behaviour_mean_return'], '.4g')}: "
             "the learned policy is worse than the data it learned from."
         )
+    fell = results.get("return_check") or {}
+    if fell.get("fell"):
+        lines.append(
+            f"FLAG return_fell: the final return {_n(fell['return'], '.4g')} ± {_n(fell['return_ci'], '.3g')} (step "
+            f"{fell['step']}) is below the best evaluation's {_n(fell['best_return'], '.4g')} ± "
+            f"{_n(fell['best_return_ci'], '.3g')} (step {fell['best_step']}), beyond both intervals, losing more than "
+            f"{_n(100 * RETURN_FALL_FRACTION, '.0f')}% of its gain over the behaviour data: more steps made the policy worse. Check Q̂'s scale (q_mean in history.json) or shorten q.steps."
+        )
     if "wall_seconds" in results:
         lines.append(f"wall time {_n(results['wall_seconds'], '.1f')} s (data {_n(results.get('data_seconds', 0), '.1f')} s)")
     return "\n".join(lines)
@@ -96,6 +105,41 @@ def below_behaviour(final: dict, data: dict) -> dict:
     if ret is not None and ref is not None and math.isfinite(ret) and math.isfinite(ref):
         out["below"] = bool(ret < ref)
     return out
+
+
+#: ``return_fell`` needs the run to lose at least this fraction of its best evaluation's gain over the behaviour data
+RETURN_FALL_FRACTION = 0.25
+
+
+def return_fell(history: list[dict], data: dict) -> dict:
+    """Whether stage 2's return fell as training went on (the ``return_fell`` flag). Both must hold:
+
+    - the last evaluation's interval lies wholly below the best earlier evaluation's (``best − ci_best > last +
+      ci_last``, each the 95% half-width over the evaluation episodes): disjoint intervals, rather than a test on the
+      difference, keep the choice of the best of several evaluations from flagging noise;
+    - the fall is at least :data:`RETURN_FALL_FRACTION` of the best evaluation's gain over the behaviour data's mean
+      episode return (``data["behaviour_mean_return"]``), so that a fall that is real but small beside what the run
+      learned (0.3 of MountainCar's return of 93, say) is not flagged.
+
+    ``{"fell": bool, "step", "return", "return_ci", "best_step", "best_return", "best_return_ci",
+    "behaviour_mean_return"}``; ``fell`` is ``False`` with fewer than two evaluations, without the behaviour data's
+    return (LQR, scored by its regret against the exact optimum) or when a figure is missing or not finite."""
+    ref = data.get("behaviour_mean_return")
+    evals = [r for r in history if r.get("stage") == "q" and _finite(r.get("return")) and _finite(r.get("return_ci"))]
+    if len(evals) < 2 or not _finite(ref):
+        return {"fell": False}
+    last, best = evals[-1], max(evals[:-1], key=lambda r: r["return"])
+    fall = best["return"] - last["return"]
+    disjoint = best["return"] - best["return_ci"] > last["return"] + last["return_ci"]
+    material = fall >= RETURN_FALL_FRACTION * (best["return"] - ref) > 0
+    return {"fell": bool(disjoint and material),
+            "step": last["step"], "return": last["return"], "return_ci": last["return_ci"],
+            "best_step": best["step"], "best_return": best["return"], "best_return_ci": best["return_ci"],
+            "behaviour_mean_return": ref}
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def load_results(root, *, finished_only: bool = False) -> list[dict]:

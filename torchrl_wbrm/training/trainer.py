@@ -46,7 +46,7 @@ from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compu
                                 expert_like_episodes, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
-from torchrl_wbrm.training.reporting import below_behaviour
+from torchrl_wbrm.training.reporting import below_behaviour, return_fell
 from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
@@ -675,6 +675,9 @@ class WBRMTrainer:
         results["behaviour_check"] = below_behaviour(results["final"], results["data"])
         if results["behaviour_check"]["below"]:
             results["flags"].append("below_behaviour")
+        results["return_check"] = return_fell(self.history, results["data"])
+        if results["return_check"]["fell"]:
+            results["flags"].append("return_fell")
         results = json_safe(results)
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / "results.json", results)
