@@ -1,20 +1,22 @@
-"""TD3+BC, CQL and IQL of this project against d3rlpy 2.8.1's on the same data (LQR exp1 or two Minari datasets),
-scored alike.
+"""TD3+BC, CQL, IQL and BC of this project against d3rlpy 2.8.1's on the same data (LQR exp1 or two Minari
+datasets), scored alike.
 
     python benchmarks/peer_d3rlpy.py                       # LQR exp1: 3,000 updates each, seed 0
     python benchmarks/peer_d3rlpy.py --steps 3000 --cql-steps 1000 --algos td3bc,iql,cql
     python benchmarks/peer_d3rlpy.py --env minari --data-path datasets/benchmark \
         --expert benchmark/pendulum/expert-v0 --behaviour benchmark/pendulum/behaviour-expert10-v0 \
         --algos iql --steps 10000 --eval-episodes 30 --seeds 0,1,2
+    python benchmarks/peer_d3rlpy.py --env minari ... --expert benchmark/pendulum/expert-pool-v0 --expert-episodes 3 \
+        --algos td3bc,iql,bc --seeds 0,1,2,3,4       # the few-demonstration cell, S^e drawn by each seed
 
 What it does, in order (one process at a time, one torch thread each):
 
 1. builds d3rlpy's own virtual environment (``.peer/d3rlpy-venv``, ignored by git: d3rlpy 2.8.1 pins gymnasium
    1.0.0) with ``python -m venv`` and ``pip install torch==2.13.0 d3rlpy==2.8.1``, unless it is there;
-2. exports the transitions this project's algo trains on for the env and the seed (``WBRMTrainer.q_train_data``:
+2. exports the transitions this project's algo trains on for the env and the seed (:func:`export_data`:
    for ``env=lqr_exp1`` the behaviour and expert episodes less the held-out episodes, 18,000 transitions at seed 0;
-   for ``--env minari`` D, the behaviour dataset's episodes that are not S^b, less the held-out episodes) to
-   ``data.npz``;
+   for ``--env minari`` D, the behaviour dataset's episodes that are not S^b, less the held-out episodes; for ``bc``
+   the state-actions it clones, S^e, with zero rewards and every row terminal) to ``data.npz``;
 3. per algo, trains d3rlpy's algorithm on exactly those transitions in a subprocess of that venv (every transition
    one two-observation episode, so each (x, a, r, x') is d3rlpy's transition as stored; ``MinMaxActionScaler`` on
    the env's action box; ``StandardObservationScaler`` of those transitions where this project standardises the
@@ -50,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 VENV = ROOT / ".peer" / "d3rlpy-venv"
 PEER_PINS = ["torch==2.13.0", "d3rlpy==2.8.1"]
 ALGOS = ("td3bc", "cql", "iql")
-LABELS = {"td3bc": "TD3+BC", "cql": "CQL", "iql": "IQL"}
+LABELS = {"td3bc": "TD3+BC", "cql": "CQL", "iql": "IQL", "bc": "BC"}
 
 
 # ---------------------------------------------------------------------- d3rlpy's side (runs in its own venv)
@@ -87,6 +89,7 @@ def peer_train(data_path: str, algo: str, steps: int, seed: int, policy_path: st
         "td3bc": lambda: d3rlpy.algos.TD3PlusBCConfig(**scalers),
         "cql": lambda: d3rlpy.algos.CQLConfig(**scalers),
         "iql": lambda: d3rlpy.algos.IQLConfig(**scalers),
+        "bc": lambda: d3rlpy.algos.BCConfig(**scalers),
     }[algo]()
     learner = config.create(device="cpu:0")
     learner.build_with_dataset(dataset)
@@ -163,12 +166,23 @@ def base_overrides(seed: int, steps: int, algo: str, env: list[str] | None = Non
 
 
 def export_data(trainer, path: Path) -> int:
+    """The transitions the trainer's algo trains on, as ``.npz``: D (``q_train_data``), or for an algo that clones
+    S^e (``bc``, ``baselines.bc.data=expert``) S^e's state-actions, with zero rewards and every row terminal (cloning
+    reads neither)."""
     import numpy as np
+    import torch
 
-    d, spec = trainer.q_train_data, trainer.action_spec
+    spec = trainer.action_spec
+    if trainer.algo.data == "expert":
+        d = trainer.datasets.expert_samples[:]
+        reward, next_observation = torch.zeros(d.shape[0], 1), d["observation"]
+        terminated = torch.ones(d.shape[0], 1, dtype=torch.bool)
+    else:
+        d = trainer.q_train_data
+        reward, next_observation, terminated = d["next", "reward"], d["next", "observation"], d["next", "terminated"]
     np.savez(path, observation=d["observation"].numpy(), action=d["action"].numpy(),
-             reward=d["next", "reward"].numpy(), next_observation=d["next", "observation"].numpy(),
-             terminated=d["next", "terminated"].numpy(), action_low=spec.space.low.numpy(),
+             reward=reward.numpy(), next_observation=next_observation.numpy(),
+             terminated=terminated.numpy(), action_low=spec.space.low.numpy(),
              action_high=spec.space.high.numpy(), gamma=np.float64(trainer.gamma),
              observation_scaler=np.bool_(bool(trainer.cfg.q.normalise_observations)))
     return d.shape[0]
@@ -296,6 +310,8 @@ def main(argv=None) -> None:
         print(json.dumps(peer_train(data, algo, int(steps), int(seed), policy)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import numpy as np
+
     from torchrl_wbrm.training.docs_fragments import docs_dir_from_args, publish_study
 
     out = Path(args.out)
@@ -315,7 +331,8 @@ def main(argv=None) -> None:
             run_dir = out / f"project_{algo}_seed{seed}"
             shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
             trainer, final, own_seconds = project_run(algo, steps, seed, run_dir, data_path, overrides, env)
-            run = {"seed": seed, "transitions": int(trainer.q_train_data.shape[0]), "project": final,
+            transitions = int(np.load(data_path)["observation"].shape[0])
+            run = {"seed": seed, "transitions": transitions, "project": final,
                    "project_s_per_1k": 1000 * own_seconds / steps}
             if peer_python is not None:
                 policy_path, peer = _peer_policy(args, peer_python, out, data_path, algo, steps, seed)
@@ -340,15 +357,15 @@ def main(argv=None) -> None:
     ci_words = ("a 95% t interval over the seeds" if len(seeds) > 1 else
                 "a 95% interval over the evaluation episodes" if minari else
                 "a 95% interval over the 1,000 paired evaluation episodes")
-    print(f"\n{where}, seeds {seeds}, {rows[0]['transitions']} training transitions (seed {seeds[0]}); "
-          f"{metric} ({better} is better, ± {ci_words})\n")
+    print(f"\n{where}, seeds {seeds}; {metric} ({better} is better, ± {ci_words})\n")
     name = "normalised score" if minari else "regret"
-    lines = [f"| method | steps | d3rlpy 2.8.1 {name} | this project {name} | s / 1k updates, d3rlpy vs this project |",
-             "|---|---|---|---|---|"]
+    lines = [f"| method | steps | training rows (seed {seeds[0]}) | d3rlpy 2.8.1 {name} | this project {name} | "
+             "s / 1k updates, d3rlpy vs this project |",
+             "|---|---|---|---|---|---|"]
     for r in rows:
         peer = (f"{r[f'd3rlpy_{metric}']:.4g} ± {r[f'd3rlpy_{metric}_ci']:.3g}" if f"d3rlpy_{metric}" in r else "–")
         peer_s = f"{r['d3rlpy_s_per_1k']:.1f}" if "d3rlpy_s_per_1k" in r else "–"
-        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {peer} | {r[f'project_{metric}']:.4g} ± "
+        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {r['transitions']:,} | {peer} | {r[f'project_{metric}']:.4g} ± "
                      f"{r[f'project_{metric}_ci']:.3g} | {peer_s} vs {r['project_s_per_1k']:.1f} |")
     print("\n".join(lines))
     (out / "tables.md").write_text("\n".join(lines) + "\n")

@@ -39,3 +39,26 @@ def test_a_broken_venv_that_is_not_the_scripts_own_is_refused_by_name(tmp_path, 
 def test_a_working_venv_is_used_as_it_is(tmp_path):
     venv = _fake_venv(tmp_path / "ok-venv", "exit 0")
     assert _peer().ensure_venv(venv) == venv / "bin" / "python"
+
+
+@pytest.mark.parametrize("algo", ["iql", "bc"])
+def test_the_export_holds_what_each_algo_trains_on(tmp_path, single_thread, algo):
+    """IQL's export is D (``q_train_data``) as it is; BC's is S^e, the rows it clones, every row terminal with a
+    zero reward, so that d3rlpy keeps each row as one transition."""
+    import numpy as np
+    import torch
+
+    from tests.test_training import tiny_config
+    from torchrl_wbrm.training import WBRMTrainer
+
+    trainer = WBRMTrainer(tiny_config(algo=algo), tmp_path / "run", progress=False)
+    n = _peer().export_data(trainer, tmp_path / "data.npz")
+    data = np.load(tmp_path / "data.npz")
+    source = trainer.datasets.expert_samples[:] if algo == "bc" else trainer.q_train_data
+    assert n == source.shape[0] == data["observation"].shape[0]
+    torch.testing.assert_close(torch.from_numpy(data["action"]), source["action"])
+    if algo == "bc":
+        assert data["terminated"].all() and not data["reward"].any()
+    else:
+        torch.testing.assert_close(torch.from_numpy(data["reward"]), source["next", "reward"])
+        assert data["terminated"].shape == (n, 1)
