@@ -93,9 +93,10 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
                             data_path: Path, namespace: str, budgets: tuple[int, ...] = (1,), base_steps: int = 0,
                             base_eval_every: int = 0) -> list[dict]:
     """Every (task, S^e size, expert share of D, budget, method) cell: ``S^e`` = ``n`` episodes of the task's expert
-    pool drawn by the seed, ``D`` its ``behaviour-expert<pp>-v0`` set, the method's overrides
-    (:data:`FEW_DEMONSTRATION_METHODS`) at ``budget`` times ``base_steps`` (and ``base_eval_every``); the cell label
-    is ``se<n>_expert<pp>``, with ``_x<budget>`` beyond the default budget."""
+    pool drawn by the seed, ``D`` its ``behaviour-expert<pp>-v0`` set (``medium-v0`` for the share ``"medium"``), the
+    method's overrides (:data:`FEW_DEMONSTRATION_METHODS`) at ``budget`` times ``base_steps`` (and
+    ``base_eval_every``); the cell label is ``se<n>_expert<pp>`` (``se<n>_medium``), with ``_x<budget>`` beyond the
+    default budget."""
     from torchrl_wbrm.data.benchmark import few_demonstration_ids
 
     unknown = [m for m in methods if m not in FEW_DEMONSTRATION_METHODS]
@@ -107,12 +108,17 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
         ids = few_demonstration_ids(task, namespace)
         for n in expert_episodes:
             for share in shares:
-                data = [*dataset_overrides(data_path, ids["expert_pool"], ids[f"behaviour_expert{share}"]),
+                behaviour = ids["medium"] if share == "medium" else ids[f"behaviour_expert{share}"]
+                if share == "medium" and "bc_oracle" in methods:
+                    raise ValueError("--expert-shares medium with --methods bc_oracle: medium-v0 has no expert "
+                                     "episodes to clone (each step is the expert's with probability ½).")
+                data = [*dataset_overrides(data_path, ids["expert_pool"], behaviour),
                         f"env.minari.expert_episodes={n}", "logger=none"]
                 for budget in budgets:
                     steps = [] if budget == 1 else [f"q.steps={budget * base_steps}",
                                                     f"q.eval_every={budget * base_eval_every}"]
-                    cell = f"se{n}_expert{share}" + ("" if budget == 1 else f"_x{budget}")
+                    cell = f"se{n}_" + ("medium" if share == "medium" else f"expert{share}") + (
+                        "" if budget == 1 else f"_x{budget}")
                     for method in methods:
                         cells.append({"task": task, "cell": cell, "method": method,
                                       "overrides": data + FEW_DEMONSTRATION_METHODS[method] + steps})
@@ -162,7 +168,7 @@ def few_demonstrations_plot(out: Path) -> Path | None:
     scores: dict[tuple, dict[str, dict[int, list[float]]]] = {}
     for rec in records:
         study = rec.get("study", {})
-        match = re.fullmatch(r"se(\d+)_expert(\d+)", str(study.get("cell", "")))  # default budget only
+        match = re.fullmatch(r"se(\d+)_(expert\d+|medium)", str(study.get("cell", "")))  # default budget only
         score = rec.get("final", {}).get("normalised_score")
         if match and isinstance(score, (int, float)):
             panel = scores.setdefault((study["task"], match.group(2)), {})
@@ -184,7 +190,8 @@ def few_demonstrations_plot(out: Path) -> Path | None:
         ax.set_xticklabels([str(n) for n in ax.get_xticks()])
         ax.set_xlabel("S^e: expert episodes")
         ax.set_ylabel("normalised score (0 random, 100 expert)")
-        ax.set_title(f"{task}, D {int(share)}% expert episodes", fontsize=10)
+        ax.set_title(f"{task}, D " + ("medium-v0" if share == "medium" else f"{int(share[6:])}% expert episodes"),
+                     fontsize=10)
         ax.legend(fontsize=7)
     return save_figure(fig, out / "few_demonstrations.png")
 
@@ -232,8 +239,9 @@ def main(argv=None) -> None:
                         help="the few-demonstration table: S^e a few episodes of the expert pool, D a behaviour set "
                              "with a share of expert episodes, every method of FEW_DEMONSTRATION_METHODS")
     parser.add_argument("--expert-episodes", nargs="+", type=int, default=[3], help="S^e's episodes (few-demos)")
-    parser.add_argument("--expert-shares", nargs="+", default=["10"], choices=["05", "10", "20"],
-                        help="the expert share of D in percent, behaviour-expert<pp>-v0 (few-demonstrations)")
+    parser.add_argument("--expert-shares", nargs="+", default=["10"], choices=["05", "10", "20", "medium"],
+                        help="the expert share of D in percent, behaviour-expert<pp>-v0, or medium: medium-v0 "
+                             "(few-demonstrations)")
     parser.add_argument("--methods", nargs="+", default=list(FEW_DEMONSTRATION_METHODS),
                         help="the few-demonstration table's rows")
     parser.add_argument("--report-only", action="store_true")

@@ -138,7 +138,8 @@ EXTRA = {"cql": ["baselines.cql.num_random=4", "q.steps=500", "q.eval_every=500"
          # the recipe's GELU Q fits Q̂ more slowly at this small budget than SiLU did: after 1,000 steps WBRM's Q̂
          # error on expert samples was 0.55 and BRM's 0.66, against the bar of 0.50 below; 2,000 steps clear it
          "wbrm": ["q.steps=2000", "q.eval_every=2000"],
-         "brm": ["q.steps=2000", "q.eval_every=2000"]}
+         "brm": ["q.steps=2000", "q.eval_every=2000"],
+         "iql": ["q.steps=1500", "q.eval_every=1500"]}
 
 #: a Q-learning method must beat the behaviour policy's mean action by this factor in regret ...
 REGRET_FACTOR = 2.0

@@ -346,3 +346,9 @@ def test_few_demonstration_cells_at_other_budgets():
     assert cells[0]["overrides"][-2:] == ["algo=wbrm", "q.expert_bc_from_d=true"]
     assert cells[2]["overrides"][-4:] == ["algo=wbrm", "q.expert_bc_from_d=true", "q.steps=9000", "q.eval_every=1500"]
     assert not any(o.startswith("q.steps=") for o in cells[1]["overrides"])
+    # the medium set: D from medium-v0, labelled se<n>_medium; the oracle has no expert episodes there to clone
+    medium = module.few_demonstration_cells(["pendulum"], [3], ["medium"], ["brm"], Path("/data"), "benchmark")
+    assert [c["cell"] for c in medium] == ["se3_medium"]
+    assert "env.minari.behaviour=benchmark/pendulum/medium-v0" in medium[0]["overrides"]
+    with pytest.raises(ValueError, match="medium-v0 has no expert episodes"):
+        module.few_demonstration_cells(["pendulum"], [3], ["medium"], ["bc_oracle"], Path("/data"), "benchmark")
