@@ -331,7 +331,8 @@ def main(argv=None) -> None:
             run_dir = out / f"project_{algo}_seed{seed}"
             shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
             trainer, final, own_seconds = project_run(algo, steps, seed, run_dir, data_path, overrides, env)
-            transitions = int(np.load(data_path)["observation"].shape[0])
+            with np.load(data_path) as exported:  # what both libraries train on: D, or S^e for bc
+                transitions = int(exported["observation"].shape[0])
             run = {"seed": seed, "transitions": transitions, "project": final,
                    "project_s_per_1k": 1000 * own_seconds / steps}
             if peer_python is not None:
@@ -365,8 +366,9 @@ def main(argv=None) -> None:
     for r in rows:
         peer = (f"{r[f'd3rlpy_{metric}']:.4g} ± {r[f'd3rlpy_{metric}_ci']:.3g}" if f"d3rlpy_{metric}" in r else "–")
         peer_s = f"{r['d3rlpy_s_per_1k']:.1f}" if "d3rlpy_s_per_1k" in r else "–"
-        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {r['transitions']:,} | {peer} | {r[f'project_{metric}']:.4g} ± "
-                     f"{r[f'project_{metric}_ci']:.3g} | {peer_s} vs {r['project_s_per_1k']:.1f} |")
+        lines.append(f"| {LABELS[r['algo']]} | {r['steps']} | {r['transitions']:,} | {peer} | "
+                     f"{r[f'project_{metric}']:.4g} ± {r[f'project_{metric}_ci']:.3g} | {peer_s} vs "
+                     f"{r['project_s_per_1k']:.1f} |")
     print("\n".join(lines))
     (out / "tables.md").write_text("\n".join(lines) + "\n")
     if minari or args.no_peer or args.set:  # the published table is the LQR exp1 comparison at the defaults

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "return_fell", "split_by_status", "summarise"]
+__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "return_fell", "split_by_status",
+           "summarise"]
 
 
 def _n(value, spec: str) -> str:
@@ -89,7 +90,8 @@ def summarise(results: dict) -> str:
             f"FLAG return_fell: the final return {_n(fell['return'], '.4g')} ± {_n(fell['return_ci'], '.3g')} (step "
             f"{fell['step']}) is below the best evaluation's {_n(fell['best_return'], '.4g')} ± "
             f"{_n(fell['best_return_ci'], '.3g')} (step {fell['best_step']}), beyond both intervals, losing more than "
-            f"{_n(100 * RETURN_FALL_FRACTION, '.0f')}% of its gain over the behaviour data: more steps made the policy worse. Check Q̂'s scale (q_mean in history.json) or shorten q.steps."
+            f"{_n(100 * RETURN_FALL_FRACTION, '.0f')}% of its gain over the behaviour data: more steps made the "
+            "policy worse. Check Q̂'s scale (q_mean in history.json) or shorten q.steps."
         )
     if "wall_seconds" in results:
         lines.append(f"wall time {_n(results['wall_seconds'], '.1f')} s (data {_n(results.get('data_seconds', 0), '.1f')} s)")
