@@ -203,8 +203,8 @@ def data_digest(path: Path) -> str:
 
 def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path | None,
                 overrides: list[str] | None = None, env: list[str] | None = None):
-    """Train this project's ``algo`` (the recipe's defaults, then ``overrides``); returns (trainer, final figures,
-    seconds of the update steps)."""
+    """Train this project's ``algo`` (the recipe's defaults, then ``overrides``), exporting its training rows to
+    ``data_path`` first; returns (trainer, final figures, seconds of the update steps, rows exported or ``None``)."""
     import torch
 
     from torchrl_wbrm.training import WBRMTrainer
@@ -212,8 +212,7 @@ def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path
     torch.set_num_threads(1)
     cfg = compose([*base_overrides(seed, steps, algo, env), *(overrides or [])])
     trainer = WBRMTrainer(cfg, run_dir, progress=False)
-    if data_path is not None:
-        export_data(trainer, data_path)
+    exported = export_data(trainer, data_path) if data_path is not None else None
     seconds = [0.0]
     q_step = trainer._q_step
 
@@ -225,7 +224,7 @@ def project_run(algo: str, steps: int, seed: int, run_dir: Path, data_path: Path
 
     trainer._q_step = timed
     results = trainer.run()
-    return trainer, results["final"], seconds[0]
+    return trainer, results["final"], seconds[0], exported
 
 
 def score(trainer, policy_path: Path) -> dict:
@@ -310,8 +309,6 @@ def main(argv=None) -> None:
         print(json.dumps(peer_train(data, algo, int(steps), int(seed), policy)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import numpy as np
-
     from torchrl_wbrm.training.docs_fragments import docs_dir_from_args, publish_study
 
     out = Path(args.out)
@@ -330,9 +327,8 @@ def main(argv=None) -> None:
             data_path = out / f"data_seed{seed}.npz"
             run_dir = out / f"project_{algo}_seed{seed}"
             shutil.rmtree(run_dir, ignore_errors=True)  # always trained anew
-            trainer, final, own_seconds = project_run(algo, steps, seed, run_dir, data_path, overrides, env)
-            with np.load(data_path) as exported:  # what both libraries train on: D, or S^e for bc
-                transitions = int(exported["observation"].shape[0])
+            trainer, final, own_seconds, transitions = project_run(algo, steps, seed, run_dir, data_path, overrides,
+                                                                   env)  # transitions: D's, or S^e's for bc
             run = {"seed": seed, "transitions": transitions, "project": final,
                    "project_s_per_1k": 1000 * own_seconds / steps}
             if peer_python is not None:

@@ -103,22 +103,22 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
     if unknown:
         raise ValueError(f"--methods {' '.join(unknown)}: not a method of the few-demonstration table; choose from "
                          f"{', '.join(FEW_DEMONSTRATION_METHODS)}.")
+    if "medium" in shares and "bc_oracle" in methods:
+        raise ValueError("--expert-shares medium with --methods bc_oracle: medium-v0 has no expert episodes to clone "
+                         "(each step is the expert's with probability ½).")
     cells = []
     for task in tasks:
         ids = few_demonstration_ids(task, namespace)
         for n in expert_episodes:
             for share in shares:
-                behaviour = ids["medium"] if share == "medium" else ids[f"behaviour_expert{share}"]
-                if share == "medium" and "bc_oracle" in methods:
-                    raise ValueError("--expert-shares medium with --methods bc_oracle: medium-v0 has no expert "
-                                     "episodes to clone (each step is the expert's with probability ½).")
+                label = "medium" if share == "medium" else f"expert{share}"  # the cell's, and D's dataset
+                behaviour = ids["medium" if share == "medium" else f"behaviour_{label}"]
                 data = [*dataset_overrides(data_path, ids["expert_pool"], behaviour),
                         f"env.minari.expert_episodes={n}", "logger=none"]
                 for budget in budgets:
                     steps = [] if budget == 1 else [f"q.steps={budget * base_steps}",
                                                     f"q.eval_every={budget * base_eval_every}"]
-                    cell = f"se{n}_" + ("medium" if share == "medium" else f"expert{share}") + (
-                        "" if budget == 1 else f"_x{budget}")
+                    cell = f"se{n}_{label}" + ("" if budget == 1 else f"_x{budget}")
                     for method in methods:
                         cells.append({"task": task, "cell": cell, "method": method,
                                       "overrides": data + FEW_DEMONSTRATION_METHODS[method] + steps})

@@ -53,7 +53,8 @@ def test_the_export_holds_what_each_algo_trains_on(tmp_path, single_thread, algo
 
     trainer = WBRMTrainer(tiny_config(algo=algo), tmp_path / "run", progress=False)
     n = _peer().export_data(trainer, tmp_path / "data.npz")
-    data = np.load(tmp_path / "data.npz")
+    with np.load(tmp_path / "data.npz") as exported:
+        data = dict(exported)
     source = trainer.datasets.expert_samples[:] if algo == "bc" else trainer.q_train_data
     assert n == source.shape[0] == data["observation"].shape[0]
     torch.testing.assert_close(torch.from_numpy(data["action"]), source["action"])

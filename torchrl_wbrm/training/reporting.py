@@ -7,11 +7,14 @@ __all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "retur
            "summarise"]
 
 
+def _finite(value) -> bool:
+    """A number (not a bool) that is finite: what a figure of results.json must be to be printed or compared."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _n(value, spec: str) -> str:
     """``format(value, spec)``, or ``"n/a"`` for a missing or non-finite figure (``null`` in results.json)."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        return "n/a"
-    return format(value, spec)
+    return format(value, spec) if _finite(value) else "n/a"
 
 
 def summarise(results: dict) -> str:
@@ -104,7 +107,7 @@ def below_behaviour(final: dict, data: dict) -> dict:
     ``False`` when either figure is unknown (LQR is scored by its regret against the exact optimum instead)."""
     ret, ref = final.get("return"), data.get("behaviour_mean_return")
     out = {"below": False, "return": ret, "return_ci": final.get("return_ci"), "behaviour_mean_return": ref}
-    if ret is not None and ref is not None and math.isfinite(ret) and math.isfinite(ref):
+    if _finite(ret) and _finite(ref):
         out["below"] = bool(ret < ref)
     return out
 
@@ -138,10 +141,6 @@ def return_fell(history: list[dict], data: dict) -> dict:
             "step": last["step"], "return": last["return"], "return_ci": last["return_ci"],
             "best_step": best["step"], "best_return": best["return"], "best_return_ci": best["return_ci"],
             "behaviour_mean_return": ref}
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def load_results(root, *, finished_only: bool = False) -> list[dict]:
