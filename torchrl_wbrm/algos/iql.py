@@ -29,7 +29,10 @@ class IQLConfig:
         loss_function: the critics' loss.
         min_log_std, max_log_std: the clamp of the policy's state-independent log standard deviation (d3rlpy's
             −5 and 2).
-        init_log_std: the log standard deviation's initial value (the paper's and d3rlpy's 0).
+        init_log_std: the log standard deviation's initial value (the paper's 0). d3rlpy parameterises it as
+            ``min + (max − min) · sigmoid(p)`` with ``p`` starting at 0, so its σ starts at exp(−1.5). Set to −1.5,
+            on the few-demonstration cells of docs/results/peer_d3rlpy.md it scored +0.9 ± 0.8 (Pendulum-v1)
+            and +0.4 ± 12.6 (LunarLanderContinuous-v3) normalised, paired over 5 seeds: not the gap to d3rlpy.
         lr, actor_lr, target_tau: Adam's rates for Q and V, and for the actor, and SoftUpdate's τ (they replace
             ``q.lr``, ``q.actor_lr`` and ``q.target_tau`` for this algo). The rates default to the project's 1e-3,
             not the paper's 3e-4, which is set for 10⁶ updates (LQR exp1, 1,000 updates: regret 0.18 against
