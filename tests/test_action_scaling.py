@@ -114,3 +114,43 @@ def test_unit_q_network_reads_unit_actions_as_the_box_network_reads_box_actions(
     unit = q_unit(TensorDict({"observation": obs, "action": scaling.to_unit(a)}, [64]))["state_action_value"]
     torch.testing.assert_close(unit, box)
     assert set(dict(q_unit.named_parameters())) == {f"module.net.{k}" for k, _ in q_box.module.named_parameters()}
+
+
+@pytest.mark.parametrize("unit_input", [False, True])
+def test_iql_q_reads_the_box_action_or_with_unit_action_input_the_unit_action(tmp_path, unit_input):
+    trainer = WBRMTrainer(tiny_config(algo="iql", baselines={"iql": {"unit_action_input": unit_input}}), tmp_path,
+                          progress=False)
+    trainer._build_q_buffer()
+    first = next(m for m in trainer.q_loss.qvalue_network.modules() if isinstance(m, torch.nn.Linear))
+    seen = []
+    hook = first.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
+    try:
+        trainer.algo.q_value(trainer.q_train_data[:64])  # Q̂ at the data's box actions
+    finally:
+        hook.remove()
+    m = trainer.action_spec.shape[-1]
+    fed = seen[0][:, -m:]  # the first layer's input ends with the action (after the observation's fixed rescaling)
+    box = trainer.q_train_data[:64]["action"]
+    expected = ActionScaling(trainer.action_spec).to_unit(box) if unit_input else box
+    torch.testing.assert_close(fed, expected)
+    assert box.abs().max() > 1.5  # LQR's box is [−5, 5]²: the two inputs differ
+
+
+def test_iql_critic_first_weights_the_actor_with_the_updated_value(tmp_path):
+    trainer = WBRMTrainer(tiny_config(algo="iql", baselines={"iql": {"critic_first": True}}), tmp_path,
+                          progress=False)
+    trainer._build_q_buffer()
+    loss = trainer.q_loss
+    torch.manual_seed(0)
+    batch = trainer.q_buffer.sample()
+    actor0, target0 = loss.actor_network_params.data.clone(), loss.target_qvalue_network_params.data.clone()
+    value0 = loss.value_network_params.data.clone()
+    out = trainer.algo.step(batch.clone(), 0)
+    with torch.no_grad():  # the actor loss it stepped: the actor and target Q before the step, V after it
+        loss.actor_network_params.data.update_(actor0)
+        loss.target_qvalue_network_params.data.update_(target0)
+        with_new_value, _ = loss.actor_loss(batch.clone())
+        loss.value_network_params.data.update_(value0)
+        with_old_value, _ = loss.actor_loss(batch.clone())
+    torch.testing.assert_close(out["loss_actor"], with_new_value)
+    assert not torch.allclose(out["loss_actor"], with_old_value, rtol=1e-4, atol=0)

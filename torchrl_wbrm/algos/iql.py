@@ -44,6 +44,11 @@ class IQLConfig:
             on LQR exp1 at 3,000 updates the regret is the same at 0.05, 0.01 and 0.005 (0.0296, 0.0291, 0.0288;
             docs/results/peer_d3rlpy.md). At 1,000 updates 0.005 is too slow for LQR exp1's regret bar of
             ``tests/test_baselines.py`` (0.046 against 0.042), which the test's IQL run therefore gets 1,500.
+        critic_first: step Q and V on the batch first, then the actor with the updated V (d3rlpy's order). Off: the
+            three losses are computed on the batch and stepped at once (torchrl's sota-implementations).
+        unit_action_input: Q reads the unit action ``(a − c) / h`` itself (d3rlpy's and the paper's units: D4RL's
+            boxes are ``[−1, 1]ᵐ``). Off: Q reads the env's box action, as every critic of this project does (the same
+            function class; only the first layer's input is rescaled).
     """
 
     expectile: float = 0.7
@@ -55,6 +60,8 @@ class IQLConfig:
     lr: float = 1e-3
     actor_lr: float = 1e-3
     target_tau: float = 0.005
+    critic_first: bool = False
+    unit_action_input: bool = False
 
 
 def _check(settings: IQLConfig, key: str) -> None:
@@ -107,8 +114,9 @@ def build_iql(ctx: AlgoContext) -> Algo:
     actor = make_iql_actor(ctx, scaling.unit_spec, ic).to(ctx.device)
     value = make_q_network(ctx.observation_dim, 0, **critic_options(ctx), in_keys=("observation",),
                            out_key="state_value").to(ctx.device)
-    loss = IQLLoss(actor, scaling.unit_q_network(q_network(ctx)), value, loss_function=ic.loss_function,
-                   temperature=ic.temperature, expectile=ic.expectile)
+    critic = q_network(ctx) if ic.unit_action_input else scaling.unit_q_network(q_network(ctx))
+    loss = IQLLoss(actor, critic, value, loss_function=ic.loss_function, temperature=ic.temperature,
+                   expectile=ic.expectile)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = SoftUpdate(loss, tau=ic.target_tau)
     optimisers = {"qvalue": adam(loss.qvalue_network_params.values(True, True), ic.lr),
@@ -116,8 +124,17 @@ def build_iql(ctx: AlgoContext) -> Algo:
                   "value": adam(loss.value_network_params.values(True, True), ic.lr)}
 
     def step(batch: TensorDictBase, i: int) -> dict:
-        out = loss(batch)
-        descend_all({k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_value")}, optimisers)
+        if ic.critic_first:  # Q and V, then the actor's advantage weights with the updated V
+            loss_qvalue, _ = loss.qvalue_loss(batch.clone(False))
+            loss_value, _ = loss.value_loss(batch.clone(False))
+            descend_all({"loss_qvalue": loss_qvalue, "loss_value": loss_value},
+                        {k: optimisers[k] for k in ("qvalue", "value")})
+            loss_actor, _ = loss.actor_loss(batch.clone(False))
+            descend_all({"loss_actor": loss_actor}, {"actor": optimisers["actor"]})
+            out = {"loss_actor": loss_actor, "loss_qvalue": loss_qvalue, "loss_value": loss_value}
+        else:
+            out = loss(batch)
+            descend_all({k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_value")}, optimisers)
         updater.step()
         return scalars(out)
 
