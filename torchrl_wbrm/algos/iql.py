@@ -48,7 +48,9 @@ class IQLConfig:
             three losses are computed on the batch and stepped at once (torchrl's sota-implementations).
         unit_action_input: Q reads the unit action ``(a − c) / h`` itself (d3rlpy's and the paper's units: D4RL's
             boxes are ``[−1, 1]ᵐ``). Off: Q reads the env's box action, as every critic of this project does (the same
-            function class; only the first layer's input is rescaled).
+            function class; only the first layer's input is rescaled). On the Pendulum-v1 few-demonstration cell (5
+            seeds, docs/results/peer_d3rlpy.md) ``unit_action_input`` gained 1.8 ± 1.2 normalised, and with
+            ``critic_first`` and ``init_log_std=-1.5`` as well 2.3 ± 1.4; d3rlpy's IQL stayed 3.1 ± 0.8 higher.
     """
 
     expectile: float = 0.7
