@@ -111,8 +111,8 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
         ids = few_demonstration_ids(task, namespace)
         for n in expert_episodes:
             for share in shares:
-                label = "medium" if share == "medium" else f"expert{share}"  # the cell's, and D's dataset
-                behaviour = ids["medium" if share == "medium" else f"behaviour_{label}"]
+                label = "medium" if share == "medium" else f"expert{share}"  # the cell's label
+                behaviour = ids["medium"] if share == "medium" else ids[f"behaviour_expert{share}"]
                 data = [*dataset_overrides(data_path, ids["expert_pool"], behaviour),
                         f"env.minari.expert_episodes={n}", "logger=none"]
                 for budget in budgets:

@@ -80,7 +80,6 @@ def test_the_defaults_learn_every_benchmark_task(name, tmp_path):
         assert res["status"] == "finished" and res["flags"] == [], (steps, res["status"], res["flags"])
         assert len(res["data"]["expert_episode_ids"]) == DEMONSTRATIONS, res["data"]  # the few-demonstration regime
     short = results[short_steps]["final"]
-    print(f"{name}: {short['normalised_score']:.1f} against a bar of {bar:.1f} (its behaviour data {behaviour:.1f})")
     assert short["normalised_score"] > bar, (short["normalised_score"], bar, behaviour)
     if name in LONG_RUN:
         long = results[3 * short_steps]["final"]

@@ -38,8 +38,9 @@ class IQLConfig:
             not the paper's 3e-4, which is set for 10⁶ updates (LQR exp1, 1,000 updates: regret 0.18 against
             0.029). τ defaults to the paper's and d3rlpy's 0.005, not the project's 0.05. IQL chains its value
             targets: V ← expectile of the target Q ← r + γ V. A fast target (τ = 0.05) likely lets that chain
-            inflate the advantages of D's random actions, and the actor then clones them. Measured on Pendulum-v1 (3 expert episodes drawn by each seed, D 10% the expert's; 3,000
-            updates, seeds 0-4), as a normalised score: 89.8 at 0.005 against 76.0 at 0.01 (d3rlpy: 95.2); on
+            inflate the advantages of D's random actions, and the actor then clones them. Measured on Pendulum-v1
+            (3 expert episodes drawn by each seed, D 10% the expert's; 3,000 updates, seeds 0-4), as a normalised
+            score: 89.8 at 0.005 against 76.0 at 0.01 (d3rlpy: 95.2); on
             LunarLanderContinuous-v3, the same cell, 25.5 against 37.5, inside the seeds' interval (d3rlpy: 11.4);
             on LQR exp1 at 3,000 updates the regret is the same at 0.05, 0.01 and 0.005 (0.0296, 0.0291, 0.0288;
             docs/results/peer_d3rlpy.md). At 1,000 updates 0.005 is too slow for LQR exp1's regret bar of
