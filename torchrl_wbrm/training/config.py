@@ -159,6 +159,13 @@ class QConfig:
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations (null: the env's).
+        select: which stage-2 parameters the run delivers and scores at the end. ``"last"`` (default): those of the
+            last step. ``"held_out_residual"``: those of the evaluation (every ``eval_every`` steps, the last step
+            included) whose unweighted Bellman residual on the held-out D episodes
+            (``"held_out_bellman_residual"``, ``holdout_fraction``) is lowest: early stopping on data the run did not
+            train on, as stage 1 keeps its best held-out state. Needs an algo with a Bellman residual (wbrm, brm,
+            fqi, mabo). The final record names the step chosen (``"selected_step"``); a resume with a larger
+            ``steps`` continues from the last step's parameters.
     """
 
     residual: str = "squared"
@@ -192,6 +199,7 @@ class QConfig:
     init_bias: bool = True
     holdout_fraction: float = 0.1
     eval_every: Optional[int] = None
+    select: str = "last"
 
 
 @dataclass
@@ -370,6 +378,7 @@ _CHOICES = {
     "q.maximiser": ("actor", "sampled"),
     "q.ensemble_reduction": ("mean", "min"),
     "q.lr_schedule": ("constant", "cosine"),
+    "q.select": ("last", "held_out_residual"),
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }

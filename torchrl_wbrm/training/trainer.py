@@ -112,6 +112,11 @@ def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Pa
     return unique_dir(Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}")
 
 
+def _clone_state(state: dict) -> dict:
+    """A detached copy of a module's ``state_dict`` (a snapshot later steps do not change)."""
+    return {k: v.detach().clone() if isinstance(v, torch.Tensor) else copy.deepcopy(v) for k, v in state.items()}
+
+
 class WBRMTrainer:
     """Builds data, networks, losses and optimisers from a :class:`WBRMConfig` and runs the two stages.
 
@@ -303,6 +308,14 @@ class WBRMTrainer:
         self.actor = self.algo.policy  # the policy evaluated (deterministic mode)
         self.optimisers = self.algo.optimisers
         self.q_buffer = None  # built after stage 1, with the weights in it
+        if qc.select == "held_out_residual" and self.algo.bellman_loss is None:
+            raise ValueError(f"q.select=held_out_residual chooses by the held-out Bellman residual, which "
+                             f"algo={self.cfg.algo} does not fit: use q.select=last or an algo with one "
+                             f"(wbrm, brm, fqi, mabo).")
+        # q.select=held_out_residual: the best evaluation's step, residual and parameters, and, once the final
+        # evaluation has loaded them into q_loss, the last step's parameters (a resume with more steps goes on there)
+        self.q_best: dict | None = None
+        self._q_last_state: dict | None = None
 
     def _setup_evaluation(self) -> None:
         """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
@@ -512,11 +525,26 @@ class WBRMTrainer:
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
-        if self._stop is not None:  # a signal stops a (long) evaluation at once: StopNow
-            with self._stop.immediately():
+        selecting = self.cfg.q.select == "held_out_residual"
+        if selecting and final and self._q_last_state is None:
+            self._keep_if_best(step, self._held_out_residual())
+            if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
+                self._q_last_state = _clone_state(self.q_loss.state_dict())
+                self.q_loss.load_state_dict(self.q_best["state"])
+        try:
+            if self._stop is not None:  # a signal stops a (long) evaluation at once: StopNow
+                with self._stop.immediately():
+                    figures = self.evaluate(final=final)
+            else:
                 figures = self.evaluate(final=final)
-        else:
-            figures = self.evaluate(final=final)
+        except BaseException:
+            if selecting and final:  # checkpointed as it was trained: the resumed evaluation selects again
+                self._restore_last()
+            raise
+        if selecting and not final:
+            self._keep_if_best(step, figures.get("held_out_bellman_residual"))
+        if selecting and final:
+            figures["selected_step"] = self.q_best["step"]
         record = {"stage": "q", "step": step, **figures}
         self.history.append(record)
         bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
@@ -542,12 +570,31 @@ class WBRMTrainer:
             out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
                                           device=self.device)
             if self.algo.bellman_loss is not None:
-                held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
-                _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
-                out["held_out_bellman_residual"] = figures["td_error"].mean().item()  # unweighted mean δ², any form
+                out["held_out_bellman_residual"] = self._held_out_residual()
         finally:
             self.actor.train()
         return out
+
+    @torch.no_grad()
+    def _held_out_residual(self) -> float:
+        """The unweighted mean δ² (any residual form) of the current Q on the held-out D episodes."""
+        held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
+        _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
+        return figures["td_error"].mean().item()
+
+    def _keep_if_best(self, step: int, residual: float | None) -> None:
+        """``q.select=held_out_residual``: keep the current parameters if ``residual`` is the lowest so far (the
+        earliest wins a tie; a non-finite residual never does)."""
+        if residual is None or not math.isfinite(residual):
+            return
+        if self.q_best is None or residual < self.q_best["residual"]:
+            self.q_best = {"step": step, "residual": residual, "state": _clone_state(self.q_loss.state_dict())}
+
+    def _restore_last(self) -> None:
+        """Put the last step's parameters back into ``q_loss`` (after a selection loaded an earlier evaluation's)."""
+        if self._q_last_state is not None:
+            self.q_loss.load_state_dict(self._q_last_state)
+            self._q_last_state = None
 
     # ------------------------------------------------------------------ run
     def run(self, *, until: int | None = None) -> dict | None:
@@ -588,6 +635,7 @@ class WBRMTrainer:
             self._build_q_buffer()
         if self.state["stage"] == "done" and self.state["step"] < self.cfg.q.steps:
             self.state["stage"] = "q"  # resumed with a larger budget: continue training
+            self._restore_last()  # from the last step's parameters, not a selected earlier evaluation's
         if self.state["stage"] == "q":
             done = self._run_stage(
                 "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
@@ -709,6 +757,8 @@ class WBRMTrainer:
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
             "data_fingerprint": self.data_fingerprint,
             "config": self.config_record(),
+            "q_best": self.q_best,
+            "q_last": self._q_last_state,
         }
         if self.ratio_network is not None:
             fitter = self.ratio_fitter.state_dict()
@@ -740,6 +790,7 @@ class WBRMTrainer:
         self.history = sd["history"]
         self._checkpoint_state = dict(self.state)
         self.q_loss.load_state_dict(sd["q_loss"])
+        self.q_best, self._q_last_state = sd.get("q_best"), sd.get("q_last")
         # checkpoints written before the algos refactor hold "value_optim" and "actor_optim"
         optimisers = sd.get("optimisers") or {"value": sd["value_optim"], "actor": sd["actor_optim"]}
         for name, optimiser in self.optimisers.items():
