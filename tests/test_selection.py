@@ -25,7 +25,7 @@ def tiny(**overrides):
 
 @pytest.fixture
 def fake_residual(monkeypatch):
-    monkeypatch.setattr(WBRMTrainer, "_held_out_residual", lambda self: FAKE[self.state["step"]])
+    monkeypatch.setattr(WBRMTrainer, "_held_out_residual", lambda self, weighted=False: FAKE[self.state["step"]])
 
 
 FIGURES = ("regret", "return", "q_error_expert", "q_error_behaviour")
@@ -80,6 +80,22 @@ def test_a_finished_run_evaluated_anew_keeps_its_selection(fake_residual, tmp_pa
     stopped = WBRMTrainer(tiny(q={"steps": 20, "select": "last"}, eval=evaluation), tmp_path / "stop20",
                           progress=False).run()
     _same_final(again, stopped)  # step 20's parameters, not the last step's
+
+
+@pytest.mark.parametrize("algo", ["wbrm", "brm"])
+def test_the_weighted_criterion_weighs_each_held_out_row_by_its_w(algo, tmp_path):
+    """``held_out_weighted_residual`` is recorded at every evaluation and chosen by; with ŵ ≡ 1 (brm) it is the
+    unweighted residual, with the fitted ŵ (wbrm) it is not."""
+    run = WBRMTrainer(tiny(algo=algo, q={"select": "held_out_weighted_residual"}), tmp_path / algo, progress=False)
+    results = run.run()
+    records = [r for r in run.history if r["stage"] == "q"]
+    weighted = {r["step"]: r["held_out_weighted_residual"] for r in records[:-1]}
+    unweighted = {r["step"]: r["held_out_bellman_residual"] for r in records[:-1]}
+    assert (weighted == unweighted) == (algo == "brm")
+    best = min(weighted, key=weighted.get)
+    if weighted[best] < records[-1]["held_out_weighted_residual"]:
+        pytest.fail("the final record must score the lowest weighted residual's parameters")
+    assert results["final"]["selected_step"] in (best, 40)
 
 
 def test_an_algo_without_a_bellman_residual_is_refused(tmp_path):

@@ -163,8 +163,10 @@ class QConfig:
             last step. ``"held_out_residual"``: those of the evaluation (every ``eval_every`` steps, the last step
             included) whose unweighted Bellman residual on the held-out D episodes
             (``"held_out_bellman_residual"``, ``holdout_fraction``) is lowest: early stopping on data the run did not
-            train on, as stage 1 keeps its best held-out state. Needs an algo with a Bellman residual (wbrm, brm,
-            fqi, mabo). The final record names the step chosen (``"selected_step"``); a resume with a larger
+            train on, as stage 1 keeps its best held-out state. ``"held_out_weighted_residual"``: the same with
+            each held-out row's δ² weighted by its ŵ, shaped as D's rows are (``"held_out_weighted_residual"``, the
+            mean ŵ δ² stage 2 minimises; with ŵ ≡ 1 the unweighted one). Needs an algo with a Bellman residual
+            (wbrm, brm, fqi, mabo). The final record names the step chosen (``"selected_step"``); a resume with a larger
             ``steps`` continues from the last step's parameters.
     """
 
@@ -378,7 +380,7 @@ _CHOICES = {
     "q.maximiser": ("actor", "sampled"),
     "q.ensemble_reduction": ("mean", "min"),
     "q.lr_schedule": ("constant", "cosine"),
-    "q.select": ("last", "held_out_residual"),
+    "q.select": ("last", "held_out_residual", "held_out_weighted_residual"),
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }

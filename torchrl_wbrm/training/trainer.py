@@ -308,8 +308,8 @@ class WBRMTrainer:
         self.actor = self.algo.policy  # the policy evaluated (deterministic mode)
         self.optimisers = self.algo.optimisers
         self.q_buffer = None  # built after stage 1, with the weights in it
-        if qc.select == "held_out_residual" and self.algo.bellman_loss is None:
-            raise ValueError(f"q.select=held_out_residual chooses by the held-out Bellman residual, which "
+        if qc.select != "last" and self.algo.bellman_loss is None:
+            raise ValueError(f"q.select={qc.select} chooses by the held-out Bellman residual, which "
                              f"algo={self.cfg.algo} does not fit: use q.select=last or an algo with one "
                              f"(wbrm, brm, fqi, mabo).")
         # q.select=held_out_residual: the best evaluation's step, residual and parameters, and, once the final
@@ -457,16 +457,9 @@ class WBRMTrainer:
         d = self.q_train_data.clone()
         source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
         self.ratio_check = None
+        w = self._raw_weights(d, source)
         if source == "learned":
-            w = compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
             self.ratio_check = self._check_ratio(w)
-        elif source == "exact":
-            w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
-            beta = self.cfg.ratio.relative_beta
-            if beta:  # the relative ratio p_e / (beta p_e + (1 - beta) p_b) of the true ratio
-                w = w / (beta * w + 1 - beta)
-        else:
-            w = torch.ones(d.shape[0], 1)
         rc = self.cfg.ratio
         expert_like = {}
         if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like:
@@ -486,8 +479,29 @@ class WBRMTrainer:
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
+        if self.cfg.q.select == "held_out_weighted_residual":  # the held-out episodes' weights, shaped as D's
+            held_out = self.q_holdout.clone()
+            w_held_out = self._raw_weights(held_out, source)
+            if rc.aggregate == "episode" and source != "none":
+                w_held_out = episode_weights(w_held_out, held_out["episode"])
+            self.q_holdout_weights = store_density_ratio(
+                held_out, w_held_out, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
+                self_normalise=rc.self_normalise and source != "none", keepdim=True, dtype=d["observation"].dtype)
         self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+
+    def _raw_weights(self, d: TensorDictBase, source: str) -> torch.Tensor:
+        """ŵ over the rows of ``d`` before any shaping: the fitted ratio (``"learned"``), the true one
+        (``"exact"``, relative with ``ratio.relative_beta``) or 1 (``"none"``)."""
+        if source == "learned":
+            return compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
+        if source == "exact":
+            w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
+            beta = self.cfg.ratio.relative_beta
+            if beta:  # the relative ratio p_e / (beta p_e + (1 - beta) p_b) of the true ratio
+                w = w / (beta * w + 1 - beta)
+            return w
+        return torch.ones(d.shape[0], 1)
 
     def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``). Returns their
@@ -525,9 +539,10 @@ class WBRMTrainer:
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
-        selecting = self.cfg.q.select == "held_out_residual"
+        criterion = self.SELECTION_FIGURES.get(self.cfg.q.select)
+        selecting = criterion is not None
         if selecting and final and self._q_last_state is None:
-            self._keep_if_best(step, self._held_out_residual())
+            self._keep_if_best(step, self._held_out_residual(weighted=criterion == "held_out_weighted_residual"))
             if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
                 self._q_last_state = _clone_state(self.q_loss.state_dict())
                 self.q_loss.load_state_dict(self.q_best["state"])
@@ -542,7 +557,7 @@ class WBRMTrainer:
                 self._restore_last()
             raise
         if selecting and not final:
-            self._keep_if_best(step, figures.get("held_out_bellman_residual"))
+            self._keep_if_best(step, figures.get(criterion))
         if selecting and final:
             figures["selected_step"] = self.q_best["step"]
         record = {"stage": "q", "step": step, **figures}
@@ -571,16 +586,26 @@ class WBRMTrainer:
                                           device=self.device)
             if self.algo.bellman_loss is not None:
                 out["held_out_bellman_residual"] = self._held_out_residual()
+                if self.cfg.q.select == "held_out_weighted_residual":
+                    out["held_out_weighted_residual"] = self._held_out_residual(weighted=True)
         finally:
             self.actor.train()
         return out
 
     @torch.no_grad()
-    def _held_out_residual(self) -> float:
-        """The unweighted mean δ² (any residual form) of the current Q on the held-out D episodes."""
+    def _held_out_residual(self, *, weighted: bool = False) -> float:
+        """The mean δ² (any residual form) of the current Q on the held-out D episodes: unweighted, or with
+        ``weighted`` each row's ŵ shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises)."""
         held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
         _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
-        return figures["td_error"].mean().item()
+        delta2 = figures["td_error"]
+        if weighted:
+            delta2 = delta2 * self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
+        return delta2.mean().item()
+
+    #: each q.select choice that selects and the evaluation figure it minimises
+    SELECTION_FIGURES = {"held_out_residual": "held_out_bellman_residual",
+                         "held_out_weighted_residual": "held_out_weighted_residual"}
 
     def _keep_if_best(self, step: int, residual: float | None) -> None:
         """``q.select=held_out_residual``: keep the current parameters if ``residual`` is the lowest so far (the
