@@ -312,7 +312,7 @@ class WBRMTrainer:
             raise ValueError(f"q.select={qc.select} chooses by the held-out Bellman residual, which "
                              f"algo={self.cfg.algo} does not fit: use q.select=last or an algo with one "
                              f"(wbrm, brm, fqi, mabo).")
-        # q.select=held_out_residual: the best evaluation's step, residual and parameters, and, once the final
+        # q.select other than last: the best evaluation's step, residual and parameters, and, once the final
         # evaluation has loaded them into q_loss, the last step's parameters (a resume with more steps goes on there)
         self.q_best: dict | None = None
         self._q_last_state: dict | None = None
@@ -608,7 +608,7 @@ class WBRMTrainer:
                          "held_out_weighted_residual": "held_out_weighted_residual"}
 
     def _keep_if_best(self, step: int, residual: float | None) -> None:
-        """``q.select=held_out_residual``: keep the current parameters if ``residual`` is the lowest so far (the
+        """``q.select`` (not ``last``): keep the current parameters if ``residual`` is the lowest so far (the
         earliest wins a tie; a non-finite residual never does)."""
         if residual is None or not math.isfinite(residual):
             return
