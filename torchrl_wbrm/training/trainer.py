@@ -460,7 +460,6 @@ class WBRMTrainer:
         w = self._raw_weights(d, source)
         if source == "learned":
             self.ratio_check = self._check_ratio(w)
-        rc = self.cfg.ratio
         expert_like = {}
         if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like:
             rows, expert_like = self._expert_like(d, w)
@@ -468,27 +467,30 @@ class WBRMTrainer:
                 self.algo.cloning.add_expert_like(d[rows])
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
                 d.set("expert_like", rows.reshape(d.shape))
-        if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
-            w = episode_weights(w, d["episode"])
-        try:  # shaped, checked finite, stored in D as [N, 1] in the observations' dtype
-            w = store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
-                                    self_normalise=rc.self_normalise and source != "none", keepdim=True,
-                                    dtype=d["observation"].dtype)
-        except NonFiniteWeightsError as err:
-            raise TrainingDiverged("weights over D", 0, "density_ratio", err.value) from err
+        w = self._store_weights(d, w, source, "weights over D")
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
         if self.cfg.q.select == "held_out_weighted_residual":  # the held-out episodes' weights, shaped as D's
             held_out = self.q_holdout.clone()
-            w_held_out = self._raw_weights(held_out, source)
-            if rc.aggregate == "episode" and source != "none":
-                w_held_out = episode_weights(w_held_out, held_out["episode"])
-            self.q_holdout_weights = store_density_ratio(
-                held_out, w_held_out, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
-                self_normalise=rc.self_normalise and source != "none", keepdim=True, dtype=d["observation"].dtype)
+            self.q_holdout_weights = self._store_weights(held_out, self._raw_weights(held_out, source), source,
+                                                         "weights over the held-out episodes")
         self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+
+    def _store_weights(self, d: TensorDictBase, w: torch.Tensor, source: str, what: str) -> torch.Tensor:
+        """``w`` shaped as the config says (``ratio.aggregate``, ``ratio.temper``, ``ratio.clip``, ``ratio.mix``, the
+        self-normalisation), checked finite and stored in ``d`` under ``"density_ratio"`` as ``[N, 1]`` in the
+        observations' dtype; returns the stored weights. Non-finite weights stop the run, naming ``what``."""
+        rc = self.cfg.ratio
+        if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
+            w = episode_weights(w, d["episode"])
+        try:
+            return store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
+                                       self_normalise=rc.self_normalise and source != "none", keepdim=True,
+                                       dtype=d["observation"].dtype)
+        except NonFiniteWeightsError as err:
+            raise TrainingDiverged(what, 0, "density_ratio", err.value) from err
 
     def _raw_weights(self, d: TensorDictBase, source: str) -> torch.Tensor:
         """ŵ over the rows of ``d`` before any shaping: the fitted ratio (``"learned"``), the true one
@@ -542,7 +544,7 @@ class WBRMTrainer:
         criterion = self.SELECTION_FIGURES.get(self.cfg.q.select)
         selecting = criterion is not None
         if selecting and final and self._q_last_state is None:
-            self._keep_if_best(step, self._held_out_residual(weighted=criterion == "held_out_weighted_residual"))
+            self._keep_if_best(step, self._held_out_residuals()[criterion])
             if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
                 self._q_last_state = _clone_state(self.q_loss.state_dict())
                 self.q_loss.load_state_dict(self.q_best["state"])
@@ -585,23 +587,25 @@ class WBRMTrainer:
             out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
                                           device=self.device)
             if self.algo.bellman_loss is not None:
-                out["held_out_bellman_residual"] = self._held_out_residual()
-                if self.cfg.q.select == "held_out_weighted_residual":
-                    out["held_out_weighted_residual"] = self._held_out_residual(weighted=True)
+                out.update(self._held_out_residuals())
         finally:
             self.actor.train()
         return out
 
     @torch.no_grad()
-    def _held_out_residual(self, *, weighted: bool = False) -> float:
-        """The mean δ² (any residual form) of the current Q on the held-out D episodes: unweighted, or with
-        ``weighted`` each row's ŵ shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises)."""
+    def _held_out_residuals(self) -> dict[str, float]:
+        """The current Q's mean δ² (any residual form) on the held-out D episodes, from one pass over them:
+        ``"held_out_bellman_residual"`` unweighted and, with ``q.select=held_out_weighted_residual``,
+        ``"held_out_weighted_residual"``, each row's δ² weighted by its ŵ shaped as D's rows are (``mean ŵ δ²``, the
+        squared residual stage 2 minimises)."""
         held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
         _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
         delta2 = figures["td_error"]
-        if weighted:
-            delta2 = delta2 * self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
-        return delta2.mean().item()
+        out = {"held_out_bellman_residual": delta2.mean().item()}
+        if self.cfg.q.select == "held_out_weighted_residual":
+            weights = self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
+            out["held_out_weighted_residual"] = (weights * delta2).mean().item()
+        return out
 
     #: each q.select choice that selects and the evaluation figure it minimises
     SELECTION_FIGURES = {"held_out_residual": "held_out_bellman_residual",
