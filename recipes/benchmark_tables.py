@@ -244,11 +244,17 @@ def main(argv=None) -> None:
                              "(few-demonstrations)")
     parser.add_argument("--methods", nargs="+", default=list(FEW_DEMONSTRATION_METHODS),
                         help="the few-demonstration table's rows")
+    parser.add_argument("--overrides", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="recipe overrides for every run, before each cell's own; a q.steps or q.eval_every "
+                             "given here is what --budgets multiplies")
     parser.add_argument("--report-only", action="store_true")
     from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
+    malformed = [o for o in args.overrides if "=" not in o or o.startswith("=")]
+    if malformed:
+        parser.error(f"--overrides {' '.join(malformed)}: each must be KEY=VALUE (e.g. q.layer_norm=false).")
 
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
     from torchrl_wbrm.data.minari_data import minari_data_root
@@ -256,6 +262,7 @@ def main(argv=None) -> None:
     from torchrl_wbrm.training.runs import run_cells
 
     few = args.few_demonstrations
+    base_settings = dict(o.split("=", 1) for o in args.overrides if o.split("=", 1)[0] in ("q.steps", "q.eval_every"))
     out = Path(args.out or ("results/few_demonstrations" if few else "results/benchmark")).resolve()
     data_path = Path(args.data_path).resolve()
     if not args.report_only:
@@ -268,14 +275,15 @@ def main(argv=None) -> None:
             sizes = dict(expert_episodes=2, behaviour_episodes=10, reference_episodes=3) if args.quick else {}
             rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)
             print(f"wrote the datasets of {', '.join(r['task'] for r in rows)} under {data_path}")
-        steps, eval_every = (MinariTask.TRAINING_DEFAULTS[k] for k in ("q.steps", "q.eval_every"))
+        steps, eval_every = (int(base_settings.get(k, MinariTask.TRAINING_DEFAULTS[k]))
+                             for k in ("q.steps", "q.eval_every"))
         if few:
             cells = few_demonstration_cells(args.tasks, args.expert_episodes, args.expert_shares, args.methods,
                                             data_path, args.namespace, args.budgets, steps, eval_every)
         else:
             cells = build_cells(args.tasks, args.algos, args.budgets, data_path, args.namespace, steps, eval_every)
-        budget = (["ratio.steps=20", "q.steps=20", "q.eval_every=10", "eval.episodes=2", "eval.train_episodes=1",
-                   "plots=false"] if args.quick else [])
+        budget = [*args.overrides, *(["ratio.steps=20", "q.steps=20", "q.eval_every=10", "eval.episodes=2",
+                                      "eval.train_episodes=1", "plots=false"] if args.quick else [])]
         if args.quick:  # the budget goes first, so a cell's own q.steps (its multiple) would win: drop it
             for cell in cells:
                 cell["overrides"] = [o for o in cell["overrides"] if not o.startswith(("q.steps=", "q.eval_every="))]
@@ -286,8 +294,10 @@ def main(argv=None) -> None:
     print(table)
     from torchrl_wbrm.training.reporting import load_results
 
-    budget = ("the task's default `q.steps`" if few else
-              ", ".join(f"×{b}" for b in args.budgets) + " the task's default `q.steps`")
+    base = (f"`q.steps={base_settings['q.steps']}`" if "q.steps" in base_settings
+            else "the task's default `q.steps`")
+    budget = (base if few else ", ".join(f"×{b}" for b in args.budgets) + " " + base) + (
+        f"; every run with `{' '.join(args.overrides)}`" if args.overrides else "")
     figure = few_demonstrations_plot(out) if few else None
     publish_study("few_demonstrations" if few else "benchmark", out / "tables.md",
                   docs_dir_from_args(args.docs_dir, args.quick), figures=[figure],

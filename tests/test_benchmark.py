@@ -249,7 +249,8 @@ def test_return_fell_needs_disjoint_intervals_and_a_material_fall():
 @pytest.mark.slow
 def test_benchmark_tables_quick_writes_the_table(tmp_path):
     """``recipes/benchmark_tables.py --quick``: the datasets are made when missing, every (task, algo, seed) runs the
-    recipe with the dataset keys only, and tables.md has one row per cell with the normalised score."""
+    recipe with the dataset keys only (and ``--overrides``), and tables.md has one row per cell with the normalised
+    score; a malformed override is refused before anything runs."""
     import importlib.util
     from pathlib import Path
 
@@ -257,15 +258,20 @@ def test_benchmark_tables_quick_writes_the_table(tmp_path):
     spec = importlib.util.spec_from_file_location("benchmark_tables", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--quick", "--tasks", "pendulum", "--algos", "wbrm", "bc", "--seeds", "1", "--jobs", "1",
-                 "--data-path", str(tmp_path / "data"), "--out", str(tmp_path / "out")])
+    args = ["--quick", "--tasks", "pendulum", "--algos", "wbrm", "bc", "--seeds", "1", "--jobs", "1",
+            "--data-path", str(tmp_path / "data"), "--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit):
+        module.main([*args, "--overrides", "q.layer_norm"])
+    assert not (tmp_path / "out").exists()
+    module.main([*args, "--overrides", "q.layer_norm=false"])
     table = (tmp_path / "out" / "tables.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| pendulum |")]
     assert [row.split(" | ")[1] for row in rows] == ["bc", "wbrm"]
     for row in rows:
         cells = row.split(" | ")
         assert cells[3] == "1" and float(cells[4]) == float(cells[4])  # one seed, a finite normalised score
-    results = json.loads(next((tmp_path / "out").rglob("results.json")).read_text())
+    results = json.loads(next((tmp_path / "out").rglob("wbrm/*/seed0/results.json")).read_text())
+    assert results["config"]["q"]["layer_norm"] is False  # the override, against the continuous-action default
     assert "env.minari.expert=benchmark/pendulum/expert-v0" not in str(results["config"])  # resolved config saved
     assert results["config"]["env"]["minari"]["expert"] == "benchmark/pendulum/expert-v0"
     assert results["config"]["q"]["expert_bc_alpha"] in (0.0, 1.0)

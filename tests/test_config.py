@@ -55,7 +55,14 @@ def test_the_yaml_sets_nothing_the_schema_does_not():
 
 ENVS = sorted(p.stem for p in (CONFIG_DIR / "env").glob("*.yaml"))
 #: what an env needs on the command line before it composes (the Minari datasets are mandatory, ``???``)
-REQUIRED = {"minari": {"env.minari.expert": "e", "env.minari.behaviour": "b"}}
+def _required(env: str) -> dict:
+    """The keys an env needs set: for ``minari`` a real pair (its defaults depend on the datasets' action space)."""
+    if env != "minari":
+        return {}
+    from minari_helpers import mountain_car_datasets
+
+    data = mountain_car_datasets()
+    return {"env.minari.expert": data["expert_path"], "env.minari.behaviour": data["behaviour_path"]}
 
 
 def test_every_env_group_is_covered():
@@ -69,9 +76,10 @@ def test_an_env_named_by_string_is_the_recipes_env(env):
     from torchrl_wbrm.data.tasks import get_task
     from torchrl_wbrm.training.config import to_config
 
-    composed = _compose(f"env={env}", *(f"{k}={v}" for k, v in REQUIRED.get(env, {}).items()))
+    required = _required(env)
+    composed = _compose(f"env={env}", *(f"{k}={v}" for k, v in required.items()))
     api = WBRMConfig(env=env)
-    for key, value in REQUIRED.get(env, {}).items():  # the Minari pair: set on the config, as a user does
+    for key, value in required.items():  # the Minari pair: set on the config, as a user does
         assert OmegaConf.select(OmegaConf.structured(api), key) == ""
         setattr(api.env.minari, key.rsplit(".", 1)[1], value)
     assert _as_flat(api) == _as_flat(OmegaConf.to_object(composed))

@@ -281,6 +281,34 @@ def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread)
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("algo", ["wbrm", "brm", "iql", "bc"])
+def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, algo):
+    """A continuous action gets the Minari defaults (LayerNorm, 9,000 steps, the held-out weighted residual's pick)
+    for an algo that fits a Bellman residual, and the shared LayerNorm and selection for the others; a Discrete
+    action keeps the shared defaults. The command line wins over either."""
+    from torchrl_wbrm.data.tasks import MinariTask, Task
+    from torchrl_wbrm.training import WBRMConfig
+    from torchrl_wbrm.training.config import to_config
+
+    def resolved(data: MinariDataConfig, **q):
+        cfg = WBRMConfig(env="minari", algo=algo)
+        cfg.env.minari.expert, cfg.env.minari.behaviour = data.expert, data.behaviour
+        cfg.env.minari.data_path = data.data_path
+        for key, value in q.items():
+            setattr(cfg.q, key, value)
+        out = to_config(cfg).q
+        return out.layer_norm, out.steps, out.eval_every, out.select
+
+    residual = algo in ("wbrm", "brm")
+    shared = Task.TRAINING_DEFAULTS
+    continuous = MinariTask.TRAINING_DEFAULTS
+    assert continuous["q.steps"] == 9000 and continuous["q.select"] == "held_out_weighted_residual"
+    pick = (continuous if residual else shared)
+    assert resolved(_config()) == (pick["q.layer_norm"], 9000, 1500, pick["q.select"])
+    assert resolved(_cartpole_config(cartpole_grid)) == (False, 3000, 500, "last")
+    assert resolved(_config(), layer_norm=False, steps=7, select="last") == (False, 7, 1500, "last")
+
+
 def test_discrete_action_learning(tmp_path, cartpole_grid, single_thread):
     """WBRM on the CartPole (2, 2)-observation datasets closes at least half the gap from the behaviour data's mean
     return to the expert data's (lower 95% bound; measured seed 0: 500 ± 0 against 93.7 and 482.3)."""

@@ -24,7 +24,8 @@ def _check(settings: FQIConfig, key: str) -> None:
     check_positive(settings, key, "target_update_every")
 
 
-@register_algo("fqi", config=FQIConfig, validate=_check, loss="`WeightedBellmanLoss` unweighted + `HardUpdate`",
+@register_algo("fqi", config=FQIConfig, validate=_check, bellman_residual=True,
+               loss="`WeightedBellmanLoss` unweighted + `HardUpdate`",
                reference="Ernst et al. 2005", loss_title="fitted Q iteration: regression loss")
 def build_fqi(ctx: AlgoContext) -> Algo:
     """The unweighted squared Bellman residual against a *frozen* target Q (``WeightedBellmanLoss`` with

@@ -64,7 +64,7 @@ def _adversary(ctx: AlgoContext, mc: MABOConfig) -> TensorDictModule:
                             out_keys=["adversary_output"])
 
 
-@register_algo("mabo", config=MABOConfig, validate=_check, loss="`MABOLoss`",
+@register_algo("mabo", config=MABOConfig, validate=_check, bellman_residual=True, loss="`MABOLoss`",
                reference="Xie & Jiang 2020", loss_title="MABO: Bellman loss against the adversary")
 def build_mabo(ctx: AlgoContext) -> Algo:
     """Each step: ``baselines.mabo.critic_steps`` ascent steps of the adversary w (``loss_critic``, critic only),

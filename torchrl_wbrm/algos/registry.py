@@ -30,6 +30,9 @@ class AlgoSpec:
         fits_ratio: stage 1 (the density ratio ŵ) runs before it when ``ratio.source=learned``: ``True``, or a
             function of the run's config saying whether it does (``bc`` fits ŵ only to weight what it clones,
             ``baselines.bc.data=weighted``); :meth:`fits_ratio_for` reads either.
+        bellman_residual: it fits a Bellman residual (its algo's ``bellman_loss``), so ``q.select`` can score its
+            evaluations on the held-out D episodes; a task's default ``q.select`` applies to it, and ``last`` to the
+            others (:func:`~torchrl_wbrm.training.config.resolve_defaults`).
         loss, reference: one line each (Markdown) for the docs' table.
         loss_title: the title of the training-loss panel of ``training_curve.png``.
     """
@@ -39,6 +42,7 @@ class AlgoSpec:
     config: type | None = None
     validate: Callable[[Any, str], None] | None = None
     fits_ratio: bool | Callable[[Any], bool] = False
+    bellman_residual: bool = False
     loss: str = ""
     reference: str = ""
     loss_title: str = ""
@@ -55,8 +59,9 @@ class AlgoSpec:
 ALGOS: dict[str, AlgoSpec] = {}
 
 
-def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio=False, loss: str = "",
-                  reference: str = "", loss_title: str = "") -> Callable:
+def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio=False,
+                  bellman_residual: bool = False, loss: str = "", reference: str = "", loss_title: str = ""
+                  ) -> Callable:
     """Decorator: register ``build(context) -> Algo`` under ``name`` (returns the builder unchanged).
 
     ``config`` must be a dataclass (its defaults are the ``algo/<name>`` node's); a name registered twice is an error.
@@ -69,7 +74,7 @@ def register_algo(name: str, *, config: type | None = None, validate=None, fits_
     def decorator(build: Callable) -> Callable:
         if name in ALGOS:
             raise ValueError(f"register_algo: the algo {name!r} is registered already ({ALGOS[name].build.__module__}).")
-        ALGOS[name] = AlgoSpec(name, build, config, validate, fits_ratio, loss, reference,
+        ALGOS[name] = AlgoSpec(name, build, config, validate, fits_ratio, bellman_residual, loss, reference,
                                loss_title or f"{name}: training losses")
         return build
 

@@ -61,6 +61,7 @@ __all__ = [
     "make_minari_eval_env",
     "OneHotActions",
     "minari_data_root",
+    "minari_discrete_action",
     "resolve_minari_dataset",
     "check_new_minari_ids",
     "delete_minari_datasets",
@@ -180,6 +181,22 @@ def _open(ref: str, data_path=None):
     from minari.dataset.minari_dataset import MinariDataset
 
     return MinariDataset(str(resolve_minari_dataset(ref, data_path)))
+
+
+def _check_given(data: MinariDataConfig) -> None:
+    """A ``ValueError`` naming the dataset keys ``data`` leaves empty."""
+    if not data.expert or not data.behaviour:
+        missing = [f"env.minari.{k}" for k in ("expert", "behaviour") if not getattr(data, k)]
+        raise ValueError(f"No Minari dataset given in {' and '.join(missing)}: env=minari reads two datasets; set "
+                         f"env.minari.expert=<id or path> and env.minari.behaviour=<id or path>.")
+
+
+def minari_discrete_action(data: MinariDataConfig) -> bool:
+    """Whether the action space of ``data``'s expert dataset is a ``Discrete`` (its metadata only, no steps read)."""
+    _check_given(data)
+    from gymnasium import spaces
+
+    return isinstance(_open(data.expert, data.data_path).action_space, spaces.Discrete)
 
 
 def _check_spaces(observation_space, action_space, where: str) -> None:
@@ -309,10 +326,7 @@ def _read_pair(data: MinariDataConfig) -> tuple[tuple, tuple]:
     """``(key, (expert dataset, behaviour dataset, expert transitions, behaviour transitions))``, every check of
     :func:`check_minari_data` but the episode count passed: the read a run's check held (:data:`_HELD_PAIR`, under
     ``key``, which names the files as they are now), or a new one."""
-    if not data.expert or not data.behaviour:
-        missing = [f"env.minari.{k}" for k in ("expert", "behaviour") if not getattr(data, k)]
-        raise ValueError(f"No Minari dataset given in {' and '.join(missing)}: env=minari reads two datasets; set "
-                         f"env.minari.expert=<id or path> and env.minari.behaviour=<id or path>.")
+    _check_given(data)
     paths = [resolve_minari_dataset(ref, data.data_path) for ref in (data.expert, data.behaviour)]
     key = (tuple(str(p.resolve()) for p in paths), files_key(*paths))
     held = _HELD_PAIR.take(key)

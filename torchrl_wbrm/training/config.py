@@ -120,7 +120,10 @@ class QConfig:
             a quadratic and the actor follows ∂Q/∂a, which a piecewise-linear ReLU network fits poorly. SiLU replaced
             ReLU first; ``recipes/q_accuracy_study.py`` then found GELU's held-out Bellman residual lower than
             SiLU's beyond the noise on five LQR systems, and its rule adopted it.
-        layer_norm, actor_layer_norm: a LayerNorm after each hidden layer of Q / of the actor.
+        layer_norm, actor_layer_norm: a LayerNorm after each hidden layer of Q (and of every critic/value network)
+            / of the actor. ``layer_norm`` null: the env's, on for Minari datasets with a continuous action (it
+            holds Q's residual and the return as the budget grows on the benchmark's tasks), off for a discrete action, for
+            LQR and MountainCar, and for every algo without a Bellman residual (TD3+BC, IQL, CQL, ...).
         ensemble_size: independently initialised Q networks whose outputs are reduced by ``ensemble_reduction``
             (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
         value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
@@ -130,7 +133,7 @@ class QConfig:
             LQR exp1 it cut the paired regret from 0.0075 to 0.0034 and lowered the held-out Bellman residual,
             ``recipes/q_accuracy_study.py``) or ``"constant"``.
         steps, batch_size, lr, actor_lr: the optimisers' budget (Adam; ``steps`` null: the env's, 3000, 4000 for
-            MountainCar).
+            MountainCar, 9000 for Minari datasets with a continuous action).
         target_tau: SoftUpdate's τ.
         actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
         weight_actor_loss: weight the actor's objective by ŵ too.
@@ -159,7 +162,9 @@ class QConfig:
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations (null: the env's).
-        select: which stage-2 parameters the run delivers and scores at the end. ``"last"`` (default): those of the
+        select: which stage-2 parameters the run delivers and scores at the end (null: the env's,
+            ``"held_out_weighted_residual"`` for Minari datasets with a continuous action, ``"last"`` for a discrete
+            one, for LQR and MountainCar and for every algo without a Bellman residual). ``"last"``: those of the
             last step. ``"held_out_residual"``: those of the evaluation (every ``eval_every`` steps, the last step
             included) whose unweighted Bellman residual on the held-out D episodes
             (``"held_out_bellman_residual"``, ``holdout_fraction``) is lowest: early stopping on data the run did not
@@ -179,7 +184,7 @@ class QConfig:
     actor_num_cells: List[int] = field(default_factory=lambda: [256, 256])
     activation: Optional[str] = None
     actor_activation: str = "ReLU"
-    layer_norm: bool = False
+    layer_norm: Optional[bool] = None
     actor_layer_norm: bool = False
     ensemble_size: int = 1
     ensemble_reduction: str = "mean"
@@ -201,7 +206,7 @@ class QConfig:
     init_bias: bool = True
     holdout_fraction: float = 0.1
     eval_every: Optional[int] = None
-    select: str = "last"
+    select: Optional[str] = None
 
 
 @dataclass
@@ -400,7 +405,10 @@ def _choices() -> dict[str, tuple]:
 def resolve_defaults(cfg, task: Task | None = None):
     """``cfg`` with every setting it leaves null (``None``) set from the env's task
     (:meth:`~torchrl_wbrm.data.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
-    activation, the step budget and the evaluation sizes. A copy; settings already given are kept as they are.
+    activation and LayerNorm, the step budget, the parameters delivered (``q.select``) and the evaluation sizes; for an
+    algo without a Bellman residual (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`) the shared defaults of
+    :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` instead of the task's. A copy; settings already
+    given are kept as they are.
 
     The trainer resolves the config it is given this way, so ``WBRMTrainer(WBRMConfig(env=...))`` runs the same
     method as ``python recipes/wbrm_offline.py env=...``. ``task``: the env's task, when built already (else built
@@ -417,7 +425,11 @@ def resolve_defaults(cfg, task: Task | None = None):
         cfg.q.expert_bc_alpha = 0.0
     if cfg.q.expert_bc_alpha and cfg.q.bc_alpha is None:
         cfg.q.bc_alpha = 0.0
-    for key, value in (task if task is not None else get_task(cfg.env)).training_defaults().items():
+    defaults = (task if task is not None else get_task(cfg.env)).training_defaults()
+    spec = ALGOS.get(cfg.algo)
+    if spec is not None and not spec.bellman_residual:  # the shared defaults, as the algo's reference defines it
+        defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in Task.BELLMAN_RESIDUAL_SETTINGS})
+    for key, value in defaults.items():
         section, name = key.split(".")
         node = getattr(cfg, section)
         if getattr(node, name) is None:

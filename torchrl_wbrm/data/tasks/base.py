@@ -73,18 +73,27 @@ class Task(ABC):
     #:   α 2.5). α 1, not TD3+BC's 2.5, which is set for cloning mixed-quality D: S^e is the expert's;
     #: * ``q.normalise_observations``: networks see ``(x − mean) / std`` of D's observations (gymnasium observations
     #:   differ in scale by orders of magnitude across dimensions);
-    #: * ``q.activation`` GELU, ``q.steps`` 3000, ``q.eval_every`` 500;
+    #: * ``q.activation`` GELU, no LayerNorm (``q.layer_norm``), ``q.steps`` 3000, ``q.eval_every`` 500, the last
+    #:   step's parameters delivered (``q.select``);
     #: * ``eval.episodes`` 100 and ``eval.train_episodes`` 10 (gymnasium episodes run one by one).
     TRAINING_DEFAULTS: ClassVar[dict[str, Any]] = {
         "q.expert_bc_alpha": 1.0,
         "q.bc_alpha": 0.0,
         "q.normalise_observations": True,
         "q.activation": "GELU",
+        "q.layer_norm": False,
         "q.steps": 3000,
         "q.eval_every": 500,
+        "q.select": "last",
         "eval.episodes": 100,
         "eval.train_episodes": 10,
     }
+
+    #: the settings whose task default applies to an algo that fits a Bellman residual only
+    #: (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`: WBRM, BRM, FQI, MABO); every other algo (BC and the
+    #: baselines TD3+BC, IQL, CQL, ...) gets the shared values above, its critics as its reference defines them.
+    #: ``q.select`` scores evaluations by the held-out Bellman residual, which only those algos fit.
+    BELLMAN_RESIDUAL_SETTINGS: ClassVar[tuple[str, ...]] = ("q.layer_norm", "q.select")
 
     def training_defaults(self) -> dict[str, Any]:
         """:attr:`TRAINING_DEFAULTS` with ``q.gamma`` (:attr:`default_gamma`): the values of the settings a config
