@@ -79,8 +79,10 @@ def ensure_data(data_path: str, tasks: list[str]) -> None:
                     "--tasks", *missing], check=True, env=_env())
 
 
-def run_cell(task: str, width: int, seeds: list[int], data_path: str, out: Path, *, rerun: bool) -> dict:
-    """One recipe process for ``task`` at width ``width`` (every seed in it); its figures, wall time and load."""
+def run_cell(task: str, width: int, seeds: list[int], data_path: str, out: Path, *, rerun: bool,
+             minari_overrides: tuple[str, ...] = ()) -> dict:
+    """One recipe process for ``task`` at width ``width`` (every seed in it); its figures, wall time and load.
+    ``minari_overrides``: recipe overrides for a benchmark (Minari) task's run, after the width's."""
     run_dir = out / f"{task}_w{width}"
     record_path = run_dir / "widths_run.json"
     if not rerun and (run_dir / "results.json").is_file():
@@ -90,7 +92,8 @@ def run_cell(task: str, width: int, seeds: list[int], data_path: str, out: Path,
         stamp = time.strftime("%Y%m%d-%H%M%S")
         run_dir.rename(run_dir.with_name(f"{run_dir.name}.old-{stamp}"))
     args = [*task_overrides(task, data_path), f"seeds=[{','.join(str(s) for s in seeds)}]",
-            *width_overrides(width), "threads=1", "logger=none", f"hydra.run.dir={run_dir}"]
+            *width_overrides(width), *(minari_overrides if task in BENCHMARK_TASKS else ()), "threads=1",
+            "logger=none", f"hydra.run.dir={run_dir}"]
     print(f"\n{task} 2x{width}: python recipes/wbrm_offline.py {' '.join(args)}", flush=True)
     load_before = os.getloadavg()[0]
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -204,7 +207,13 @@ def main(argv=None) -> None:
                         help="Minari data path of the benchmark datasets (written there if missing)")
     parser.add_argument("--out", default="results/widths", help="folder of the run directories and the table")
     parser.add_argument("--rerun", action="store_true", help="run again the cells whose results.json exists")
+    parser.add_argument("--minari-overrides", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="recipe overrides for the benchmark (Minari) tasks' runs, e.g. the shared defaults "
+                             "q.layer_norm=false q.steps=3000 q.eval_every=500 q.select=last")
     args = parser.parse_args(argv)
+    malformed = [o for o in args.minari_overrides if "=" not in o or o.startswith("=")]
+    if malformed:
+        parser.error(f"--minari-overrides {' '.join(malformed)}: each must be KEY=VALUE.")
     data_path = str(Path(args.data_path).resolve())
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -212,7 +221,8 @@ def main(argv=None) -> None:
     cells = []
     for task in args.tasks:
         for width in args.widths:
-            cells.append(run_cell(task, width, args.seeds, data_path, out, rerun=args.rerun))
+            cells.append(run_cell(task, width, args.seeds, data_path, out, rerun=args.rerun,
+                                  minari_overrides=tuple(args.minari_overrides)))
             (out / "widths.json").write_text(json.dumps(cells, indent=2))
     text = table(cells, args.tasks, args.widths, args.seeds)
     (out / "widths.md").write_text(text + "\n")
