@@ -31,8 +31,9 @@ class AlgoSpec:
             function of the run's config saying whether it does (``bc`` fits ŵ only to weight what it clones,
             ``baselines.bc.data=weighted``); :meth:`fits_ratio_for` reads either.
         bellman_residual: it fits a Bellman residual (its algo's ``bellman_loss``), so ``q.select`` can score its
-            evaluations on the held-out D episodes; a task's default ``q.select`` applies to it, and ``last`` to the
-            others (:func:`~torchrl_wbrm.training.config.resolve_defaults`).
+            evaluations on the held-out D episodes; the task's defaults of
+            :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` (Q's LayerNorm, ``q.select``) apply to
+            it, and the shared ones to the others (:func:`~torchrl_wbrm.training.config.resolve_defaults`).
         loss, reference: one line each (Markdown) for the docs' table.
         loss_title: the title of the training-loss panel of ``training_curve.png``.
     """

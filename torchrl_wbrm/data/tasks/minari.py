@@ -47,12 +47,15 @@ class MinariTask(Task):
     def __init__(self, env) -> None:
         super().__init__(env)
         self.data_config: MinariDataConfig = to_dataclass(MinariDataConfig, env.minari)
+        self._discrete: bool | None = None  # the datasets' action is a Discrete (training_defaults)
 
     def training_defaults(self) -> dict:
         """:attr:`TRAINING_DEFAULTS`, with the shared defaults for :attr:`CONTINUOUS_ONLY` when the datasets' action
         is a ``Discrete`` (read from the expert dataset's metadata)."""
         defaults = super().training_defaults()
-        if minari_discrete_action(self.data_config):
+        if self._discrete is None:  # read once per task
+            self._discrete = minari_discrete_action(self.data_config)
+        if self._discrete:
             defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in self.CONTINUOUS_ONLY})
         return defaults
 
