@@ -280,7 +280,6 @@ def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread)
         assert res["status"] == "finished" and 0.0 <= res["final"]["return"] <= 8.0
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["wbrm", "brm", "iql", "bc"])
 def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, algo):
     """A continuous action gets the Minari defaults (LayerNorm, 9,000 steps, the held-out weighted residual's pick)
@@ -309,6 +308,7 @@ def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, alg
     assert resolved(_config(), layer_norm=False, steps=7, select="last") == (False, 7, 1500, "last")
 
 
+@pytest.mark.slow
 def test_discrete_action_learning(tmp_path, cartpole_grid, single_thread):
     """WBRM on the CartPole (2, 2)-observation datasets closes at least half the gap from the behaviour data's mean
     return to the expert data's (lower 95% bound; measured seed 0: 500 ± 0 against 93.7 and 482.3)."""

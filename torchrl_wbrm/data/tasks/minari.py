@@ -36,7 +36,9 @@ class MinariTask(Task):
     #: seeds) and these 99, 97, 93 and 100 (5–10 seeds); with 1 demonstration 102 and 78 (Pendulum, LunarLander) against
     #: 51 and 71; with 100 the same or higher on every task. The LayerNorm holds Q's held-out residual as the budget
     #: grows where Q without it diverges (InvertedPendulum, LunarLander); the budget lets Pendulum's swing-up and
-    #: MountainCar's goal reach Q; the selection keeps LunarLander's early parameters when Q drifts later in the run.
+    #: MountainCar's goal reach Q; the selection keeps LunarLander's early parameters when Q drifts later in the run,
+    #: and costs a seed where the residual is lowest before Q has learned (Pendulum one of twenty, MountainCar one of
+    #: five; such a run is flagged ``return_fell``).
     TRAINING_DEFAULTS = {**Task.TRAINING_DEFAULTS, "q.layer_norm": True, "q.steps": 9000, "q.eval_every": 1500,
                          "q.select": "held_out_weighted_residual"}
     #: the settings a ``Discrete`` action keeps at the shared defaults (no LayerNorm, 3,000 steps, the last step):
