@@ -252,9 +252,11 @@ def main(argv=None) -> None:
 
     add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
-    malformed = [o for o in args.overrides if "=" not in o or o.startswith("=")]
+    malformed = [o for o in args.overrides if "=" not in o or o.startswith("=")
+                 or o.split("=", 1)[0] in ("q.steps", "q.eval_every") and not o.split("=", 1)[1].isdigit()]
     if malformed:
-        parser.error(f"--overrides {' '.join(malformed)}: each must be KEY=VALUE (e.g. q.layer_norm=false).")
+        parser.error(f"--overrides {' '.join(malformed)}: each must be KEY=VALUE (e.g. q.layer_norm=false), "
+                     f"q.steps and q.eval_every a whole number.")
 
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
     from torchrl_wbrm.data.minari_data import minari_data_root

@@ -260,8 +260,9 @@ def test_benchmark_tables_quick_writes_the_table(tmp_path):
     spec.loader.exec_module(module)
     args = ["--quick", "--tasks", "pendulum", "--algos", "wbrm", "bc", "--seeds", "1", "--jobs", "1",
             "--data-path", str(tmp_path / "data"), "--out", str(tmp_path / "out")]
-    with pytest.raises(SystemExit):
-        module.main([*args, "--overrides", "q.layer_norm"])
+    for bad in ("q.layer_norm", "q.steps=3e3"):
+        with pytest.raises(SystemExit):
+            module.main([*args, "--overrides", bad])
     assert not (tmp_path / "out").exists()
     module.main([*args, "--overrides", "q.layer_norm=false"])
     table = (tmp_path / "out" / "tables.md").read_text()

@@ -54,9 +54,11 @@ def test_the_yaml_sets_nothing_the_schema_does_not():
 
 
 ENVS = sorted(p.stem for p in (CONFIG_DIR / "env").glob("*.yaml"))
-#: what an env needs on the command line before it composes (the Minari datasets are mandatory, ``???``)
+
+
 def _required(env: str) -> dict:
-    """The keys an env needs set: for ``minari`` a real pair (its defaults depend on the datasets' action space)."""
+    """What an env needs on the command line before it composes: for ``minari`` its two datasets (mandatory,
+    ``???``), a real pair, since its defaults depend on the datasets' action space."""
     if env != "minari":
         return {}
     from minari_helpers import mountain_car_datasets
