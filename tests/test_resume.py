@@ -280,6 +280,32 @@ def test_summarise_excludes_unfinished_runs(tmp_path, finished, monkeypatch, cap
     assert "| lqr_exp1 | 2 | 1 |" in table and "1 run(s) excluded from the table (1 diverged)" in table
 
 
+def test_summarise_minari_runs_seed_by_seed(tmp_path, monkeypatch, capsys):
+    """Minari runs get the normalised score, ``--per-seed`` lists it with the step delivered and the flags, and a
+    flag other than ``q_blow_up`` is named without the blow-up's inequality (which it does not hold)."""
+    def run(seed, score, flags, step):
+        final = {"normalised_score": score, "return": 10.0 * score, "selected_step": step}
+        return {"seed": seed, "status": "finished", "config": {"algo": "brm", "q": {"steps": 800}}, "final": final,
+                "flags": flags, "q_scale": {"figure": "q_mean", "max_abs_q_mean": 5.0, "factor": 10, "bound": 50.0,
+                                            "blow_up": False}}
+    for seed, score, flags, step in ((1, 60.0, ["return_fell"], 400), (0, 80.0, [], 800)):
+        (tmp_path / f"seed{seed}").mkdir()
+        (tmp_path / f"seed{seed}" / "results.json").write_text(json.dumps(run(seed, score, flags, step)))
+    import runpy
+
+    monkeypatch.setattr(sys, "argv", ["summarise.py", str(tmp_path), "--group-by", "algo", "--digits", "1",
+                                      "--per-seed", "normalised score"])
+    runpy.run_path(str(ROOT / "recipes" / "summarise.py"), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "flagged return_fell:" in out and "r_max/(1 - gamma)" not in out
+    row = [line for line in out.splitlines() if line.startswith("| brm")]
+    assert row == ["| brm | 2 | 1 | 70.0 ± 127.1 | 700.0 ± 1270.6 | 0: 80.0 @800, 1: 60.0 @400 (return_fell) |"]
+    monkeypatch.setattr(sys, "argv", ["summarise.py", str(tmp_path), "--per-seed", "regret"])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(ROOT / "recipes" / "summarise.py"), run_name="__main__")
+    assert exit_.value.code == 2 and "--per-seed 'regret'" in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------- every algo has a plot title
 def test_every_algo_has_a_plot_title():
     assert set(LOSS_TITLES) == set(ALGOS)

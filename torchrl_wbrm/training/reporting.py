@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["below_behaviour", "ci_cell", "load_results", "results_table", "return_fell", "split_by_status",
-           "summarise"]
+__all__ = ["below_behaviour", "ci_cell", "load_results", "per_seed_cell", "results_table", "return_fell",
+           "split_by_status", "summarise"]
 
 
 def _finite(value) -> bool:
@@ -204,21 +204,42 @@ def ci_cell(records: list[dict], path: str, digits: int = 4) -> str:
     return f"{ci.mean:.{digits}f} ± {ci.half_width:.{digits}f}"
 
 
-def results_table(records: list[dict], group_by: list[str], metrics: dict[str, str], *, digits: int = 4) -> str:
+def per_seed_cell(records: list[dict], path: str, digits: int = 1) -> str:
+    """Each run's number at dotted ``path``, in seed order: ``"seed: value"``, with ``@step`` where the run delivered
+    an earlier evaluation's parameters (``final.selected_step``, ``q.select``), and its flags in brackets."""
+    cells = []
+    for rec in sorted(records, key=lambda r: (r.get("seed") is None, r.get("seed") or 0)):
+        value = _lookup(rec, path)
+        cell = f"{rec.get('seed', '?')}: {_n(value, f'.{digits}f')}"
+        step = _lookup(rec, "final.selected_step")
+        if isinstance(step, int):
+            cell += f" @{step}"
+        if rec.get("flags"):
+            cell += f" ({', '.join(rec['flags'])})"
+        cells.append(cell)
+    return ", ".join(cells)
+
+
+def results_table(records: list[dict], group_by: list[str], metrics: dict[str, str], *, digits: int = 4,
+                  per_seed: str | None = None) -> str:
     """A Markdown table: one row per distinct value of ``group_by`` (config paths), ``mean ± 95% CI`` over seeds.
 
     ``metrics`` maps a column title to a dotted path in the results (e.g. ``{"regret": "final.regret"}``). The CI is
     Student-t over the runs of a row (the seeds), so it states how much the figure moves from seed to seed. Only
     finished runs enter the figures: runs with another ``"status"`` (diverged) are counted in a line below the
-    table, and when a run is flagged (a Q̂ blow-up) a ``flagged`` column counts them per row.
+    table, and when a run is flagged (any of its ``flags``) a ``flagged`` column counts them per row. ``per_seed``: a
+    column title of ``metrics`` whose values are also listed seed by seed (:func:`per_seed_cell`).
     """
+    if per_seed is not None and per_seed not in metrics:
+        raise ValueError(f"per_seed={per_seed!r} is not one of the table's metrics {sorted(metrics)}.")
     records, excluded = split_by_status(records)
     rows: dict[tuple, list[dict]] = {}
     for rec in records:
         key = tuple(_lookup(rec, "config." + g) if not g.startswith("=") else _lookup(rec, g[1:]) for g in group_by)
         rows.setdefault(key, []).append(rec)
     flagged = any(r.get("flags") for r in records)
-    header = [g.lstrip("=") for g in group_by] + ["seeds"] + (["flagged"] if flagged else []) + list(metrics)
+    header = ([g.lstrip("=") for g in group_by] + ["seeds"] + (["flagged"] if flagged else []) + list(metrics)
+              + ([f"{per_seed}, per seed"] if per_seed is not None else []))
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for key in sorted(rows, key=lambda k: tuple(str(x) for x in k)):
         recs = rows[key]
@@ -226,6 +247,8 @@ def results_table(records: list[dict], group_by: list[str], metrics: dict[str, s
         if flagged:
             cells.append(str(sum(1 for r in recs if r.get("flags"))))
         cells += [ci_cell(recs, path, digits) for path in metrics.values()]
+        if per_seed is not None:
+            cells.append(per_seed_cell(recs, metrics[per_seed]))
         lines.append("| " + " | ".join(cells) + " |")
     if excluded:
         counts: dict[str, int] = {}
