@@ -205,8 +205,9 @@ def ci_cell(records: list[dict], path: str, digits: int = 4) -> str:
 
 
 def per_seed_cell(records: list[dict], path: str, digits: int = 1) -> str:
-    """Each run's number at dotted ``path``, in seed order: ``"seed: value"``, with ``@step`` where the run delivered
-    an earlier evaluation's parameters (``final.selected_step``, ``q.select``), and its flags in brackets."""
+    """Each run's number at dotted ``path``, in seed order: ``"seed: value"``, with ``@step``, the step whose
+    parameters the run delivered (``final.selected_step``, where ``q.select`` selects), and its flags in
+    parentheses."""
     cells = []
     for rec in sorted(records, key=lambda r: (r.get("seed") is None, r.get("seed") or 0)):
         value = _lookup(rec, path)
@@ -248,7 +249,7 @@ def results_table(records: list[dict], group_by: list[str], metrics: dict[str, s
             cells.append(str(sum(1 for r in recs if r.get("flags"))))
         cells += [ci_cell(recs, path, digits) for path in metrics.values()]
         if per_seed is not None:
-            cells.append(per_seed_cell(recs, metrics[per_seed]))
+            cells.append(per_seed_cell(recs, metrics[per_seed], digits))
         lines.append("| " + " | ".join(cells) + " |")
     if excluded:
         counts: dict[str, int] = {}
