@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # a clone's recipes run without installing (the package is importable either way)
 
 LABELS = ("task", "algo", "budget")
+#: the settings ``--budgets`` multiplies (a whole number each, from the task's defaults or ``--overrides``)
+BUDGET_KEYS = ("q.steps", "q.eval_every")
 
 #: the few-demonstration table's rows: name -> the overrides after the dataset keys (every method at the default budget)
 FEW_DEMONSTRATION_METHODS = {
@@ -252,11 +254,15 @@ def main(argv=None) -> None:
 
     add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
-    malformed = [o for o in args.overrides if "=" not in o or o.startswith("=")
-                 or o.split("=", 1)[0] in ("q.steps", "q.eval_every") and not o.split("=", 1)[1].isdigit()]
+    pairs = [o.split("=", 1) for o in args.overrides]
+    malformed = [o for o, kv in zip(args.overrides, pairs) if len(kv) != 2 or not kv[0]]
     if malformed:
-        parser.error(f"--overrides {' '.join(malformed)}: each must be KEY=VALUE (e.g. q.layer_norm=false), "
-                     f"q.steps and q.eval_every a whole number.")
+        parser.error(f"--overrides {' '.join(malformed)}: each must be KEY=VALUE (e.g. q.layer_norm=false).")
+    base_settings = {k: v for k, v in pairs if k in BUDGET_KEYS}
+    fractional = [f"{k}={v}" for k, v in base_settings.items() if not v.isdigit()]
+    if fractional:
+        parser.error(f"--overrides {' '.join(fractional)}: {' and '.join(BUDGET_KEYS)} must be whole numbers "
+                     f"(--budgets multiplies them).")
 
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
     from torchrl_wbrm.data.minari_data import minari_data_root
@@ -264,7 +270,6 @@ def main(argv=None) -> None:
     from torchrl_wbrm.training.runs import run_cells
 
     few = args.few_demonstrations
-    base_settings = dict(o.split("=", 1) for o in args.overrides if o.split("=", 1)[0] in ("q.steps", "q.eval_every"))
     out = Path(args.out or ("results/few_demonstrations" if few else "results/benchmark")).resolve()
     data_path = Path(args.data_path).resolve()
     if not args.report_only:
@@ -278,7 +283,7 @@ def main(argv=None) -> None:
             rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)
             print(f"wrote the datasets of {', '.join(r['task'] for r in rows)} under {data_path}")
         steps, eval_every = (int(base_settings.get(k, MinariTask.TRAINING_DEFAULTS[k]))
-                             for k in ("q.steps", "q.eval_every"))
+                             for k in BUDGET_KEYS)
         if few:
             cells = few_demonstration_cells(args.tasks, args.expert_episodes, args.expert_shares, args.methods,
                                             data_path, args.namespace, args.budgets, steps, eval_every)
@@ -288,7 +293,7 @@ def main(argv=None) -> None:
                                       "eval.train_episodes=1", "plots=false"] if args.quick else [])]
         if args.quick:  # the budget goes first, so a cell's own q.steps (its multiple) would win: drop it
             for cell in cells:
-                cell["overrides"] = [o for o in cell["overrides"] if not o.startswith(("q.steps=", "q.eval_every="))]
+                cell["overrides"] = [o for o in cell["overrides"] if o.split("=", 1)[0] not in BUDGET_KEYS]
         run_cells(cells, range(args.seeds), budget, out, jobs=args.jobs, labels=FEW_LABELS if few else LABELS)
     table = few_demonstrations_report(out) if few else benchmark_report(out)
     (out / "tables.md").parent.mkdir(parents=True, exist_ok=True)
