@@ -28,7 +28,7 @@ def fake_residual(monkeypatch):
     def fake(self):
         return dict.fromkeys(("held_out_bellman_residual", "held_out_weighted_residual"), FAKE[self.state["step"]])
 
-    monkeypatch.setattr(WBRMTrainer, "_held_out_residuals", fake)
+    monkeypatch.setattr(WBRMTrainer, "_selection_figures", fake)
 
 
 FIGURES = ("regret", "return", "q_error_expert", "q_error_behaviour")

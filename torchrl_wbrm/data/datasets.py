@@ -32,6 +32,7 @@ __all__ = [
     "OfflineDatasets",
     "collect_transitions",
     "split_by_episode",
+    "check_episodes_in_order",
     "make_replay_buffer",
     "min_behaviour_episodes",
     "FORMAT_VERSION",
@@ -135,6 +136,41 @@ def split_by_episode(
     n_part = min(max(1, round(fraction * len(episodes))), len(episodes) - 1)
     in_part = torch.isin(data["episode"], perm[:n_part])
     return data[~in_part], data[in_part]
+
+
+def check_episodes_in_order(data: TensorDictBase, what: str) -> None:
+    """Refuse ``data`` unless each episode's rows are contiguous and in time order: one run of rows per episode id,
+    and, inside an episode, each row's ``("next", "observation")`` the next row's ``"observation"``. ``what`` names
+    the data in the one-line error, which names the first episode that breaks the order.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.tensor([[0.0], [1.0], [2.0], [5.0]])
+        >>> td = TensorDict({"observation": obs, "episode": torch.tensor([0, 0, 0, 1]),
+        ...                  "next": {"observation": torch.tensor([[1.0], [2.0], [3.0], [6.0]])}}, [4])
+        >>> check_episodes_in_order(td, "D")
+        >>> check_episodes_in_order(td[torch.tensor([1, 0, 2, 3])], "D")
+        Traceback (most recent call last):
+        ...
+        ValueError: D: episode 0's rows are not in time order (row 0's ("next", "observation") is not row 1's "observation"); each episode's rows must be contiguous and in the order they were collected.
+    """
+    episode = data["episode"].reshape(-1)
+    starts = torch.ones_like(episode, dtype=torch.bool)
+    starts[1:] = episode[1:] != episode[:-1]
+    runs = episode[starts]
+    if runs.numel() != torch.unique(runs).numel():
+        ids, counts = torch.unique(runs, return_counts=True)
+        raise ValueError(f"{what}: episode {int(ids[counts > 1][0])}'s rows are not contiguous; each episode's rows "
+                         f"must be contiguous and in the order they were collected.")
+    same = ~starts[1:]
+    nxt, obs = data["next", "observation"][:-1], data["observation"][1:]
+    broken = same & ~(nxt == obs).reshape(nxt.shape[0], -1).all(-1)
+    if bool(broken.any()):
+        row = int(broken.nonzero()[0])
+        raise ValueError(f"{what}: episode {int(episode[row])}'s rows are not in time order (row {row}'s (\"next\", "
+                         f"\"observation\") is not row {row + 1}'s \"observation\"); each episode's rows must be "
+                         f"contiguous and in the order they were collected.")
 
 
 def min_behaviour_episodes(ratio_fraction: float) -> int:

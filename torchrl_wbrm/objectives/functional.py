@@ -9,6 +9,7 @@ quantities by calling the functions below, and nothing else computes them:
 - the actor: :func:`td3bc_lambda`, TD3+BC's normalisation of the Q term, and :func:`action_cloning`, its cloning
   term (plain, or weighted and self-normalised over the batch);
 - Q's blow-up bound: :func:`q_value_bound`, the largest |Q| a discounted return of bounded rewards reaches;
+- the episodes' own returns that ``q.select=expert_like_return`` holds Q against: :func:`bootstrapped_returns`;
 - the per-sample weight: :func:`per_sample_weight` (reading ŵ and the priority weight), :func:`reduce_batch`,
   :func:`weighted_reduce` and :func:`effective_sample_size`.
 """
@@ -30,6 +31,7 @@ __all__ = [
     "basu_power_divergence",
     "bellman_residual",
     "bellman_target",
+    "bootstrapped_returns",
     "effective_sample_size",
     "per_sample_weight",
     "power_divergence_integrands",
@@ -449,6 +451,46 @@ def action_cloning(mu: torch.Tensor, action: torch.Tensor, half_width: torch.Ten
 
 
 # ---------------------------------------------------------------------- Q's scale
+def bootstrapped_returns(reward: torch.Tensor, target_value: torch.Tensor, episode: torch.Tensor,
+                         gamma: float) -> torch.Tensor:
+    r"""Each row's discounted return to the end of its episode, bootstrapped there by the row's Bellman target.
+
+    .. math::
+
+        G_t = r_t + \gamma G_{t+1} \ \text{inside an episode}, \qquad G_T = Y_T \ \text{at its last row}, \qquad
+        \text{so} \quad G_t = \sum_{k=t}^{T-1} \gamma^{k-t} r_k + \gamma^{T-t} Y_T
+
+    with ``Y = r + γ (1 − terminated) V(x')`` (:func:`bellman_target`): the (T − t + 1)-step Bellman target of row
+    ``t``, the episode's observed rewards up to its end and Q's own value after it (0 where the episode terminated).
+    ``Q(x_t, a_t) − G_t`` is the residual of the Bellman equation chained along the episode: a Q that has not carried
+    a reward back along the episode, or has drifted away from the rewards, is far from it on every row before the
+    reward, where the one-step residual is small on all rows but one. Computed by torchrl's
+    :func:`~torchrl.objectives.value.functional.reward2go`.
+
+    Args:
+        reward (Tensor): ``r_t``, shape ``[N]``.
+        target_value (Tensor): ``Y_t``, shape ``[N]``; only each episode's last row is read.
+        episode (Tensor): the rows' episode ids, shape ``[N]``: each episode's rows contiguous and in time order.
+        gamma (float): the discount.
+
+    Examples:
+        >>> import torch
+        >>> r, y = torch.tensor([1.0, 1.0, 1.0, 2.0]), torch.tensor([0.0, 0.0, 5.0, 2.0])
+        >>> bootstrapped_returns(r, y, torch.tensor([0, 0, 0, 1]), 0.5)  # 1 + 0.5 + 0.25 · 5, 1 + 0.5 · 5, 5; 2
+        tensor([2.7500, 3.5000, 5.0000, 2.0000])
+    """
+    from torchrl.objectives.value.functional import reward2go
+
+    episode = episode.reshape(-1)
+    if not reward.shape == target_value.shape == episode.shape:
+        raise ValueError(f"bootstrapped_returns needs reward, target_value and episode of one shape [N], got "
+                         f"{tuple(reward.shape)}, {tuple(target_value.shape)} and {tuple(episode.shape)}.")
+    last = torch.ones_like(episode, dtype=torch.bool)
+    last[:-1] = episode[1:] != episode[:-1]
+    chained = torch.where(last, target_value, reward)
+    return reward2go(chained.unsqueeze(-1), last.unsqueeze(-1), gamma, time_dim=-2).squeeze(-1)
+
+
 def q_value_bound(reward_max: float, gamma: float, factor: float = 1.0) -> float:
     r"""``factor`` times the largest discounted return of rewards bounded by ``reward_max``: Q past it has blown up.
 

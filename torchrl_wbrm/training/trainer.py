@@ -34,14 +34,14 @@ from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
-from torchrl_wbrm.data.datasets import split_by_episode
+from torchrl_wbrm.data.datasets import check_episodes_in_order, split_by_episode
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.data.tasks import Evaluator, Task, get_task
 from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
-from torchrl_wbrm.objectives.functional import q_value_bound
+from torchrl_wbrm.objectives.functional import bootstrapped_returns, q_value_bound
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
                                 expert_like_episodes, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
@@ -204,8 +204,8 @@ class WBRMTrainer:
     def _check_d_settings(self) -> None:
         """Refuse, in one line and before stage 1, a setting this run cannot carry out after it: ``q.expert_bc_from_d``
         for an algo without the S^e cloning term, and, on data without episode ids (key ``"episode"``), a setting that
-        reads D's episodes: ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes, and
-        ``ratio.aggregate='episode'`` where the algo reads a ratio."""
+        reads D's episodes: ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes,
+        ``ratio.aggregate='episode'`` where the algo reads a ratio, and ``q.select=expert_like_return``."""
         if self.cfg.q.expert_bc_from_d and self.algo.cloning is None:  # validate_config refuses it for the built-in
             # algos without the S^e cloning term; a custom algo may lack one
             raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
@@ -218,7 +218,9 @@ class WBRMTrainer:
                 (self.algo.marks_expert_like, f"algo={self.cfg.algo}'s cloning of D's expert-like episodes",
                  "choose another of its settings"),
                 (reads_ratio and self.cfg.ratio.aggregate == "episode", "ratio.aggregate='episode'",
-                 "use ratio.aggregate=transition")):
+                 "use ratio.aggregate=transition"),
+                (self.cfg.q.select == "expert_like_return", "q.select=expert_like_return",
+                 "use q.select=held_out_weighted_residual")):
             if needed:
                 raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: "
                                  f"{instead}.")
@@ -316,6 +318,10 @@ class WBRMTrainer:
         # evaluation has loaded them into q_loss, the last step's parameters (a resume with more steps goes on there)
         self.q_best: dict | None = None
         self._q_last_state: dict | None = None
+        # the evaluation figure the selection minimises (None: q.select=last); expert_like_return's data and its
+        # fallback are settled with the weights, in _build_q_buffer
+        self.q_select_figure: str | None = self.SELECTION_FIGURES.get(qc.select)
+        self.q_select_data: TensorDictBase | None = None
 
     def _setup_evaluation(self) -> None:
         """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
@@ -461,8 +467,11 @@ class WBRMTrainer:
         if source == "learned":
             self.ratio_check = self._check_ratio(w)
         expert_like = {}
-        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like:
+        selecting_by_return = self.cfg.q.select == "expert_like_return"
+        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like or selecting_by_return:
             rows, expert_like = self._expert_like(d, w)
+            if selecting_by_return:
+                self._setup_return_selection(d, rows)
             if self.cfg.q.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
                 self.algo.cloning.add_expert_like(d[rows])
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
@@ -471,12 +480,24 @@ class WBRMTrainer:
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
-        if self.cfg.q.select == "held_out_weighted_residual":  # the held-out episodes' weights, shaped as D's
+        if self.q_select_figure == "held_out_weighted_residual":  # the held-out episodes' weights, shaped as D's
             held_out = self.q_holdout.clone()
             self.q_holdout_weights = self._store_weights(held_out, self._raw_weights(held_out, source), source,
                                                          "weights over the held-out episodes")
         self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+
+    def _setup_return_selection(self, d: TensorDictBase, rows: torch.Tensor) -> None:
+        """``q.select=expert_like_return``: the rows of D's expert-like episodes (``rows``, a mask over ``d``) that
+        :meth:`_selection_figures` holds Q against, checked to be whole episodes in time order. With none (ŵ ≡ 1,
+        or no episode likelier under the expert's distribution than under D's), the selection falls back to
+        ``held_out_weighted_residual``, and the results say so."""
+        if not bool(rows.any()):
+            self.q_select_figure = "held_out_weighted_residual"
+            self.q_select_data = None
+            return
+        self.q_select_data = d[rows].select("observation", "action", "episode", "next").clone()
+        check_episodes_in_order(self.q_select_data, "D's expert-like episodes (q.select=expert_like_return)")
 
     def _store_weights(self, d: TensorDictBase, w: torch.Tensor, source: str, what: str) -> torch.Tensor:
         """``w`` shaped as the config says (``ratio.aggregate``, ``ratio.temper``, ``ratio.clip``, ``ratio.mix``, the
@@ -541,10 +562,10 @@ class WBRMTrainer:
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
-        criterion = self.SELECTION_FIGURES.get(self.cfg.q.select)
+        criterion = self.q_select_figure
         selecting = criterion is not None
         if selecting and final and self._q_last_state is None:
-            self._keep_if_best(step, self._held_out_residuals()[criterion])
+            self._keep_if_best(step, self._selection_figures()[criterion])
             if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
                 self._q_last_state = _clone_state(self.q_loss.state_dict())
                 self.q_loss.load_state_dict(self.q_best["state"])
@@ -587,29 +608,41 @@ class WBRMTrainer:
             out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
                                           device=self.device)
             if self.algo.bellman_loss is not None:
-                out.update(self._held_out_residuals())
+                out.update(self._selection_figures())
         finally:
             self.actor.train()
         return out
 
     @torch.no_grad()
-    def _held_out_residuals(self) -> dict[str, float]:
-        """The current Q's mean δ² (any residual form) on the held-out D episodes, from one pass over them:
-        ``"held_out_bellman_residual"`` unweighted and, with ``q.select=held_out_weighted_residual``,
-        ``"held_out_weighted_residual"``, each row's δ² weighted by its ŵ shaped as D's rows are (``mean ŵ δ²``, the
-        squared residual stage 2 minimises)."""
+    def _selection_figures(self) -> dict[str, float]:
+        """The current Q's figures that ``q.select`` can minimise, from one pass over their data:
+        ``"held_out_bellman_residual"``, the mean δ² (any residual form) on the held-out D episodes; with
+        ``held_out_weighted_residual`` selecting, ``"held_out_weighted_residual"``, each row's δ² weighted by its ŵ
+        shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises); with ``q.select=expert_like_return``
+        and expert-like episodes in D, ``"expert_like_return_error"``, the mean of ``(Q(x_t, a_t) − G_t)²`` over
+        their rows, ``G_t`` the episode's own discounted return from ``t``, bootstrapped at its end by the Bellman
+        target (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`)."""
+        loss = self.algo.bellman_loss
         held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
-        _, figures = self.algo.bellman_loss.value_loss(held_out.to(self.device))
+        _, figures = loss.value_loss(held_out.to(self.device))
         delta2 = figures["td_error"]
         out = {"held_out_bellman_residual": delta2.mean().item()}
-        if self.cfg.q.select == "held_out_weighted_residual":
+        if self.q_select_figure == "held_out_weighted_residual":
             weights = self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
             out["held_out_weighted_residual"] = (weights * delta2).mean().item()
+        if self.q_select_figure == "expert_like_return_error":
+            d = self.q_select_data
+            q, y = loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
+            g = bootstrapped_returns(d["next", "reward"].reshape(-1).to(y), y.reshape(-1), d["episode"].reshape(-1),
+                                     self.gamma)
+            out["expert_like_return_error"] = (q.reshape(-1) - g).pow(2).mean().item()
         return out
 
-    #: each q.select choice that selects and the evaluation figure it minimises
+    #: each q.select choice that selects and the evaluation figure it minimises (``expert_like_return`` falls back
+    #: to ``held_out_weighted_residual`` where D has no expert-like episode)
     SELECTION_FIGURES = {"held_out_residual": "held_out_bellman_residual",
-                         "held_out_weighted_residual": "held_out_weighted_residual"}
+                         "held_out_weighted_residual": "held_out_weighted_residual",
+                         "expert_like_return": "expert_like_return_error"}
 
     def _keep_if_best(self, step: int, residual: float | None) -> None:
         """``q.select`` (not ``last``): keep the current parameters if ``residual`` is the lowest so far (the
@@ -743,6 +776,9 @@ class WBRMTrainer:
             best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
+        if self.q_select_figure is not None:  # the figure the delivered step was chosen by (a fallback included)
+            results["selection"] = {"select": self.cfg.q.select, "figure": self.q_select_figure,
+                                    "selected_step": results["final"].get("selected_step")}
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
         check = getattr(self, "ratio_check", None)

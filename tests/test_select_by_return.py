@@ -1,0 +1,101 @@
+"""``q.select=expert_like_return``: the run delivers the evaluation whose Q is closest to the discounted returns of
+D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes`), each return bootstrapped at its
+episode's end by the Bellman target (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). Where ŵ
+names no expert-like episode (ŵ ≡ 1) it falls back to the held-out ŵ-weighted residual and says so."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from tests.references import tiny_lqr_config
+from torchrl_wbrm.data.datasets import check_episodes_in_order
+from torchrl_wbrm.objectives.functional import bootstrapped_returns
+from torchrl_wbrm.ratio import compute_density_ratio, expert_like_episodes
+from torchrl_wbrm.training import WBRMTrainer
+
+pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
+
+
+def _loop_returns(reward, target, episode, gamma):
+    """G_t by the definition, row by row from the end."""
+    g = [0.0] * len(reward)
+    for t in reversed(range(len(reward))):
+        last = t == len(reward) - 1 or episode[t + 1] != episode[t]
+        g[t] = target[t] if last else reward[t] + gamma * g[t + 1]
+    return torch.tensor(g, dtype=torch.float64)
+
+
+# ---------------------------------------------------------------- the returns
+def test_bootstrapped_returns_match_the_definition():
+    gen = torch.Generator().manual_seed(0)
+    lengths = [1, 7, 200, 3, 1]  # a one-row episode's return is its target alone
+    episode = torch.cat([torch.full((n,), i) for i, n in zip([4, 0, 9, 2, 7], lengths)])
+    reward = torch.randn(episode.numel(), generator=gen, dtype=torch.float64)
+    target = torch.randn(episode.numel(), generator=gen, dtype=torch.float64) * 10
+    got = bootstrapped_returns(reward, target, episode, 0.97)
+    torch.testing.assert_close(got, _loop_returns(reward.tolist(), target.tolist(), episode.tolist(), 0.97))
+    # only each episode's last target is read
+    inner = torch.ones_like(episode, dtype=torch.bool)
+    inner[torch.cumsum(torch.tensor(lengths), 0) - 1] = False
+    torch.testing.assert_close(bootstrapped_returns(reward, torch.where(inner, 1e6, target), episode, 0.97), got)
+    with pytest.raises(ValueError, match=r"one shape \[N\], got \(5,\), \(4,\) and \(5,\)"):
+        bootstrapped_returns(torch.zeros(5), torch.zeros(4), torch.zeros(5, dtype=torch.long), 0.9)
+
+
+def test_episodes_out_of_order_are_refused_naming_the_episode():
+    obs = torch.arange(6.0).reshape(-1, 1)
+    td = TensorDict({"observation": obs, "next": {"observation": obs + 1},
+                     "episode": torch.tensor([3, 3, 5, 5, 3, 3])}, [6])
+    with pytest.raises(ValueError, match=r"^D: episode 3's rows are not contiguous; each episode's rows must be "):
+        check_episodes_in_order(td, "D")
+    check_episodes_in_order(td[:4], "D")
+
+
+# ---------------------------------------------------------------- in the trainer
+def _run(tmp_path, name, **overrides):
+    cfg = tiny_lqr_config({"q": {"select": "expert_like_return", "eval_every": 20}}, **overrides)
+    trainer = WBRMTrainer(cfg, tmp_path / name, progress=False)
+    return trainer, trainer.run()
+
+
+def test_wbrm_scores_q_against_the_expert_like_episodes_returns(tmp_path):
+    """The figure is the mean (Q(x_t, a_t) − G_t)² over the rows of the episodes the raw ŵ calls expert-like, every
+    evaluation records it, the run delivers the evaluation where it is lowest, and the results name it."""
+    trainer, results = _run(tmp_path, "wbrm")
+    d = trainer.q_train_data
+    w = compute_density_ratio(trainer.ratio_network, d, chunk_size=8192)
+    rows = expert_like_episodes(w, d["episode"])
+    assert 0 < int(rows.sum()) < d.shape[0]  # this fit selects some episodes, not all
+    assert torch.equal(trainer.q_select_data["observation"], d["observation"][rows])
+    # the figure of the delivered parameters, by hand
+    sel = d[rows].clone().set("density_ratio", torch.ones(int(rows.sum()), 1))
+    with torch.no_grad():
+        q, y = trainer.algo.bellman_loss.bellman_error(sel)
+    g = _loop_returns(sel["next", "reward"].reshape(-1).tolist(), y.reshape(-1).tolist(),
+                      sel["episode"].reshape(-1).tolist(), trainer.gamma)
+    want = (q.reshape(-1).double() - g).pow(2).mean().item()
+    evaluations = [r for r in trainer.history if r["stage"] == "q"]
+    assert all("expert_like_return_error" in r for r in evaluations)
+    assert results["final"]["expert_like_return_error"] == pytest.approx(want, rel=1e-4)
+    # the last row is the delivered parameters' evaluation: the lowest figure of the run, and the same as its own
+    # evaluation's where it is an earlier one
+    earlier = {r["step"]: r["expert_like_return_error"] for r in evaluations[:-1]}
+    chosen = results["final"]["selected_step"]
+    assert results["final"]["expert_like_return_error"] <= min(earlier.values())
+    if chosen in earlier:
+        assert results["final"]["expert_like_return_error"] == earlier[chosen]
+    assert results["selection"] == {"select": "expert_like_return", "figure": "expert_like_return_error",
+                                    "selected_step": results["final"]["selected_step"]}
+
+
+def test_with_w_equal_to_one_it_falls_back_to_the_held_out_residual(tmp_path):
+    """BRM (ŵ ≡ 1) has no expert-like episode: it selects by the held-out residual, as
+    ``q.select=held_out_weighted_residual`` does, and says so."""
+    trainer, results = _run(tmp_path, "brm", algo="brm")
+    assert trainer.q_select_data is None
+    assert results["selection"]["figure"] == "held_out_weighted_residual"
+    assert all("expert_like_return_error" not in r for r in trainer.history if r["stage"] == "q")
+    _, plain = _run(tmp_path, "brm_residual", algo="brm", q={"select": "held_out_weighted_residual"})
+    assert results["final"]["selected_step"] == plain["final"]["selected_step"]
+    assert results["final"]["regret"] == plain["final"]["regret"]
