@@ -117,6 +117,7 @@ def test_bc_clones_s_e_and_the_episodes_the_raw_ratio_selects(tmp_path, source):
     ({"algo": "bc", "baselines": {"bc": {"data": "expert_like"}}}, r"algo=bc's cloning of D's expert-like episodes"),
     ({"ratio": {"aggregate": "episode"}}, r"ratio\.aggregate='episode'"),
     ({"q": {"select": "expert_like_return"}}, r"q\.select=expert_like_return"),
+    ({"q": {"select": "expert_like_action"}}, r"q\.select=expert_like_action"),
 ])
 def test_a_setting_that_reads_ds_episodes_is_refused_before_stage_1_on_data_without_ids(tmp_path, monkeypatch, layer,
                                                                                        setting):

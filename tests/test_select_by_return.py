@@ -1,7 +1,8 @@
-"""``q.select=expert_like_return``: the run delivers the evaluation whose Q is closest to the discounted returns of
-D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes`), each return bootstrapped at its
-episode's end by the Bellman target (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). Where ŵ
-names no expert-like episode (ŵ ≡ 1) it falls back to the held-out ŵ-weighted residual and says so."""
+"""The selections on D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes`):
+``q.select=expert_like_action`` delivers the evaluation whose actor clones them best, ``q.select=expert_like_return``
+the one whose Q is closest to their discounted returns, each bootstrapped at its episode's end by the Bellman target
+(:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). Where ŵ names no expert-like episode (ŵ ≡ 1)
+both fall back to the held-out ŵ-weighted residual and say so."""
 from __future__ import annotations
 
 import pytest
@@ -10,7 +11,7 @@ from tensordict import TensorDict
 
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.data.datasets import check_episodes_in_order
-from torchrl_wbrm.objectives.functional import bootstrapped_returns
+from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_returns
 from torchrl_wbrm.ratio import compute_density_ratio, expert_like_episodes
 from torchrl_wbrm.training import WBRMTrainer
 
@@ -53,8 +54,8 @@ def test_episodes_out_of_order_are_refused_naming_the_episode():
 
 
 # ---------------------------------------------------------------- in the trainer
-def _run(tmp_path, name, **overrides):
-    cfg = tiny_lqr_config({"q": {"select": "expert_like_return", "eval_every": 20}}, **overrides)
+def _run(tmp_path, name, select="expert_like_return", **overrides):
+    cfg = tiny_lqr_config({"q": {"select": select, "eval_every": 20}}, **overrides)
     trainer = WBRMTrainer(cfg, tmp_path / name, progress=False)
     return trainer, trainer.run()
 
@@ -75,27 +76,47 @@ def test_wbrm_scores_q_against_the_expert_like_episodes_returns(tmp_path):
     g = _loop_returns(sel["next", "reward"].reshape(-1).tolist(), y.reshape(-1).tolist(),
                       sel["episode"].reshape(-1).tolist(), trainer.gamma)
     want = (q.reshape(-1).double() - g).pow(2).mean().item()
-    evaluations = [r for r in trainer.history if r["stage"] == "q"]
-    assert all("expert_like_return_error" in r for r in evaluations)
     assert results["final"]["expert_like_return_error"] == pytest.approx(want, rel=1e-4)
-    # the last row is the delivered parameters' evaluation: the lowest figure of the run, and the same as its own
-    # evaluation's where it is an earlier one
-    earlier = {r["step"]: r["expert_like_return_error"] for r in evaluations[:-1]}
-    chosen = results["final"]["selected_step"]
-    assert results["final"]["expert_like_return_error"] <= min(earlier.values())
-    if chosen in earlier:
-        assert results["final"]["expert_like_return_error"] == earlier[chosen]
+    _check_delivered(trainer, results, "expert_like_return_error")
     assert results["selection"] == {"select": "expert_like_return", "figure": "expert_like_return_error",
                                     "selected_step": results["final"]["selected_step"]}
 
 
-def test_with_w_equal_to_one_it_falls_back_to_the_held_out_residual(tmp_path):
+def _check_delivered(trainer, results, figure):
+    """The last row is the delivered parameters' evaluation: the run's lowest ``figure``, and the same as its own
+    evaluation's where it is an earlier one."""
+    evaluations = [r for r in trainer.history if r["stage"] == "q"]
+    assert all(figure in r for r in evaluations)
+    earlier = {r["step"]: r[figure] for r in evaluations[:-1]}
+    chosen = results["final"]["selected_step"]
+    assert results["final"][figure] <= min(earlier.values())
+    if chosen in earlier:
+        assert results["final"][figure] == earlier[chosen]
+
+
+def test_wbrm_scores_the_actor_against_the_expert_like_episodes_actions(tmp_path):
+    """The figure is the actor's cloning error on the expert-like rows, in unit actions, as the cloning term's."""
+    trainer, results = _run(tmp_path, "action", select="expert_like_action")
+    d = trainer.q_select_data
+    assert 0 < d.shape[0] < trainer.q_train_data.shape[0]
+    spec = trainer.action_spec
+    with torch.no_grad():
+        mu = trainer.actor(d.select("observation").clone())["action"]
+    want = action_cloning(mu, d["action"], (spec.space.high - spec.space.low) / 2).item()
+    assert results["final"]["expert_like_action_error"] == pytest.approx(want, rel=1e-5)
+    assert "expert_like_return_error" not in results["final"]
+    _check_delivered(trainer, results, "expert_like_action_error")
+    assert results["selection"]["figure"] == "expert_like_action_error"
+
+
+@pytest.mark.parametrize("select", ["expert_like_action", "expert_like_return"])
+def test_with_w_equal_to_one_it_falls_back_to_the_held_out_residual(tmp_path, select):
     """BRM (ŵ ≡ 1) has no expert-like episode: it selects by the held-out residual, as
     ``q.select=held_out_weighted_residual`` does, and says so."""
-    trainer, results = _run(tmp_path, "brm", algo="brm")
+    trainer, results = _run(tmp_path, "brm", select=select, algo="brm")
     assert trainer.q_select_data is None
     assert results["selection"]["figure"] == "held_out_weighted_residual"
-    assert all("expert_like_return_error" not in r for r in trainer.history if r["stage"] == "q")
-    _, plain = _run(tmp_path, "brm_residual", algo="brm", q={"select": "held_out_weighted_residual"})
+    assert all(not k.startswith("expert_like") for r in trainer.history if r["stage"] == "q" for k in r)
+    _, plain = _run(tmp_path, "brm_residual", select="held_out_weighted_residual", algo="brm")
     assert results["final"]["selected_step"] == plain["final"]["selected_step"]
     assert results["final"]["regret"] == plain["final"]["regret"]

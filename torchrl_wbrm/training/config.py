@@ -170,15 +170,19 @@ class QConfig:
             (``"held_out_bellman_residual"``, ``holdout_fraction``) is lowest: early stopping on data the run did not
             train on, as stage 1 keeps its best held-out state. ``"held_out_weighted_residual"``: the same with
             each held-out row's δ² weighted by its ŵ, shaped as D's rows are (``"held_out_weighted_residual"``, the
-            mean ŵ δ² stage 2 minimises; with ŵ ≡ 1 the unweighted one). ``"expert_like_return"``: those of the
-            evaluation whose Q is closest to the discounted returns of D's expert-like episodes (those the raw ŵ
+            mean ŵ δ² stage 2 minimises; with ŵ ≡ 1 the unweighted one). ``"expert_like_action"``: those of the
+            evaluation whose actor acts most like D's expert-like episodes (those the raw ŵ calls the expert's,
+            :func:`~torchrl_wbrm.ratio.expert_like_episodes`), by its cloning error on their rows,
+            ``‖(μ(x_t) − a_t) / h‖² / m`` as the actor's cloning term measures it (``"expert_like_action_error"``):
+            early stopping of the policy on expert data that stage 1 found in D and the actor does not clone (it
+            does with ``expert_bc_from_d``). ``"expert_like_return"``: those of the evaluation whose Q is closest to the discounted returns of D's expert-like episodes (those the raw ŵ
             calls the expert's, :func:`~torchrl_wbrm.ratio.expert_like_episodes`): the mean of
             ``(Q(x_t, a_t) − G_t)²`` over their rows (``"expert_like_return_error"``), ``G_t`` the episode's own
             discounted return from ``t``, bootstrapped at its end by the Bellman target
             (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). It measures whether Q has carried
             the rewards back along the episodes the expert would have taken, which a one-step residual barely sees
-            before Q has learned; it needs D's episode ids, each episode's rows in time order. Where ŵ calls no
-            episode expert-like (ŵ ≡ 1: every algo but ``wbrm``, and ``ratio.source=none``) it selects by
+            before Q has learned; it needs each episode's rows in time order. Both need D's episode ids; where ŵ
+            calls no episode expert-like (ŵ ≡ 1: every algo but ``wbrm``, and ``ratio.source=none``) both select by
             ``held_out_weighted_residual`` instead, and ``results.json``'s ``"selection"`` names the figure used.
             Needs an algo with a Bellman residual (wbrm, brm, fqi, mabo). The final record names the step chosen
             (``"selected_step"``); a resume with a larger ``steps`` continues from the last step's parameters.
@@ -394,7 +398,8 @@ _CHOICES = {
     "q.maximiser": ("actor", "sampled"),
     "q.ensemble_reduction": ("mean", "min"),
     "q.lr_schedule": ("constant", "cosine"),
-    "q.select": ("last", "held_out_residual", "held_out_weighted_residual", "expert_like_return"),
+    "q.select": ("last", "held_out_residual", "held_out_weighted_residual", "expert_like_action",
+                 "expert_like_return"),
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }

@@ -41,7 +41,7 @@ from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
-from torchrl_wbrm.objectives.functional import bootstrapped_returns, q_value_bound
+from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_returns, q_value_bound
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
                                 expert_like_episodes, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
@@ -205,7 +205,7 @@ class WBRMTrainer:
         """Refuse, in one line and before stage 1, a setting this run cannot carry out after it: ``q.expert_bc_from_d``
         for an algo without the S^e cloning term, and, on data without episode ids (key ``"episode"``), a setting that
         reads D's episodes: ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes,
-        ``ratio.aggregate='episode'`` where the algo reads a ratio, and ``q.select=expert_like_return``."""
+        ``ratio.aggregate='episode'`` where the algo reads a ratio, and a ``q.select`` on D's expert-like episodes."""
         if self.cfg.q.expert_bc_from_d and self.algo.cloning is None:  # validate_config refuses it for the built-in
             # algos without the S^e cloning term; a custom algo may lack one
             raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
@@ -219,7 +219,7 @@ class WBRMTrainer:
                  "choose another of its settings"),
                 (reads_ratio and self.cfg.ratio.aggregate == "episode", "ratio.aggregate='episode'",
                  "use ratio.aggregate=transition"),
-                (self.cfg.q.select == "expert_like_return", "q.select=expert_like_return",
+                (self.cfg.q.select in self.EXPERT_LIKE_SELECTIONS, f"q.select={self.cfg.q.select}",
                  "use q.select=held_out_weighted_residual")):
             if needed:
                 raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: "
@@ -318,7 +318,7 @@ class WBRMTrainer:
         # evaluation has loaded them into q_loss, the last step's parameters (a resume with more steps goes on there)
         self.q_best: dict | None = None
         self._q_last_state: dict | None = None
-        # the evaluation figure the selection minimises (None: q.select=last); expert_like_return's data and its
+        # the evaluation figure the selection minimises (None: q.select=last); an expert-like selection's data and its
         # fallback are settled with the weights, in _build_q_buffer
         self.q_select_figure: str | None = self.SELECTION_FIGURES.get(qc.select)
         self.q_select_data: TensorDictBase | None = None
@@ -467,11 +467,11 @@ class WBRMTrainer:
         if source == "learned":
             self.ratio_check = self._check_ratio(w)
         expert_like = {}
-        selecting_by_return = self.cfg.q.select == "expert_like_return"
-        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like or selecting_by_return:
+        selecting_by_episodes = self.cfg.q.select in self.EXPERT_LIKE_SELECTIONS
+        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like or selecting_by_episodes:
             rows, expert_like = self._expert_like(d, w)
-            if selecting_by_return:
-                self._setup_return_selection(d, rows)
+            if selecting_by_episodes:
+                self._setup_expert_like_selection(d, rows)
             if self.cfg.q.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
                 self.algo.cloning.add_expert_like(d[rows])
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
@@ -487,17 +487,18 @@ class WBRMTrainer:
         self.weight_stats = {**ratio_error(w), **expert_like}
         self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
-    def _setup_return_selection(self, d: TensorDictBase, rows: torch.Tensor) -> None:
-        """``q.select=expert_like_return``: the rows of D's expert-like episodes (``rows``, a mask over ``d``) that
-        :meth:`_selection_figures` holds Q against, checked to be whole episodes in time order. With none (ŵ ≡ 1,
-        or no episode likelier under the expert's distribution than under D's), the selection falls back to
-        ``held_out_weighted_residual``, and the results say so."""
+    def _setup_expert_like_selection(self, d: TensorDictBase, rows: torch.Tensor) -> None:
+        """``q.select=expert_like_action`` or ``expert_like_return``: the rows of D's expert-like episodes (``rows``,
+        a mask over ``d``) that :meth:`_selection_figures` holds the actor or Q against, checked to be whole
+        episodes in time order. With none (ŵ ≡ 1, or no episode likelier under the expert's distribution than under
+        D's), the selection falls back to ``held_out_weighted_residual``, and the results say so."""
         if not bool(rows.any()):
             self.q_select_figure = "held_out_weighted_residual"
             self.q_select_data = None
             return
         self.q_select_data = d[rows].select("observation", "action", "episode", "next").clone()
-        check_episodes_in_order(self.q_select_data, "D's expert-like episodes (q.select=expert_like_return)")
+        if self.cfg.q.select == "expert_like_return":  # its returns run along each episode
+            check_episodes_in_order(self.q_select_data, "D's expert-like episodes (q.select=expert_like_return)")
 
     def _store_weights(self, d: TensorDictBase, w: torch.Tensor, source: str, what: str) -> torch.Tensor:
         """``w`` shaped as the config says (``ratio.aggregate``, ``ratio.temper``, ``ratio.clip``, ``ratio.mix``, the
@@ -618,10 +619,13 @@ class WBRMTrainer:
         """The current Q's figures that ``q.select`` can minimise, from one pass over their data:
         ``"held_out_bellman_residual"``, the mean δ² (any residual form) on the held-out D episodes; with
         ``held_out_weighted_residual`` selecting, ``"held_out_weighted_residual"``, each row's δ² weighted by its ŵ
-        shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises); with ``q.select=expert_like_return``
-        and expert-like episodes in D, ``"expert_like_return_error"``, the mean of ``(Q(x_t, a_t) − G_t)²`` over
-        their rows, ``G_t`` the episode's own discounted return from ``t``, bootstrapped at its end by the Bellman
-        target (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`)."""
+        shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises); over the rows of D's
+        expert-like episodes, where there are some, with ``q.select=expert_like_action``
+        ``"expert_like_action_error"``, the actor's cloning error on them (``‖(μ(x_t) − a_t) / h‖² / m``, the
+        cloning term's, :func:`~torchrl_wbrm.objectives.functional.action_cloning`), and with
+        ``q.select=expert_like_return`` ``"expert_like_return_error"``, the mean of ``(Q(x_t, a_t) − G_t)²``,
+        ``G_t`` the episode's own discounted return from ``t``, bootstrapped at its end by the Bellman target
+        (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`)."""
         loss = self.algo.bellman_loss
         held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
         _, figures = loss.value_loss(held_out.to(self.device))
@@ -630,6 +634,17 @@ class WBRMTrainer:
         if self.q_select_figure == "held_out_weighted_residual":
             weights = self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
             out["held_out_weighted_residual"] = (weights * delta2).mean().item()
+        if self.q_select_figure == "expert_like_action_error":
+            d = self.q_select_data
+            spec = self.action_spec
+            training = self.actor.training
+            self.actor.eval()  # as evaluated, also where the final selection scores the last step
+            try:
+                mu = self.actor(d.select("observation").to(self.device))["action"]
+            finally:
+                self.actor.train(training)
+            out["expert_like_action_error"] = action_cloning(
+                mu, d["action"].to(mu), ((spec.space.high - spec.space.low) / 2).to(mu)).item()
         if self.q_select_figure == "expert_like_return_error":
             d = self.q_select_data
             q, y = loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
@@ -638,11 +653,14 @@ class WBRMTrainer:
             out["expert_like_return_error"] = (q.reshape(-1) - g).pow(2).mean().item()
         return out
 
-    #: each q.select choice that selects and the evaluation figure it minimises (``expert_like_return`` falls back
-    #: to ``held_out_weighted_residual`` where D has no expert-like episode)
+    #: each q.select choice that selects and the evaluation figure it minimises (the expert-like ones fall back to
+    #: ``held_out_weighted_residual`` where D has no expert-like episode)
     SELECTION_FIGURES = {"held_out_residual": "held_out_bellman_residual",
                          "held_out_weighted_residual": "held_out_weighted_residual",
+                         "expert_like_action": "expert_like_action_error",
                          "expert_like_return": "expert_like_return_error"}
+    #: the q.select choices scored on D's expert-like episodes
+    EXPERT_LIKE_SELECTIONS = ("expert_like_action", "expert_like_return")
 
     def _keep_if_best(self, step: int, residual: float | None) -> None:
         """``q.select`` (not ``last``): keep the current parameters if ``residual`` is the lowest so far (the
