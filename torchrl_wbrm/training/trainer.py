@@ -733,11 +733,15 @@ class WBRMTrainer:
     BLOW_UP_FACTOR = 10.0
 
     def _q_scale(self, final: dict) -> dict:
-        """The largest |mean Q̂| the run reports (final evaluation, last training figures) against r_max / (1 − γ)."""
+        """The largest |mean Q̂| the run reports (final evaluation, last training figures) and, for every algo with a
+        Q, the delivered Q̂'s mean over D's training rows (``"q_mean_data"``: the algos on torchrl's losses report no
+        Q figure of their own), against r_max / (1 − γ)."""
         r_max = float(self.datasets.transitions[:]["next", "reward"].abs().max())
         bound = q_value_bound(r_max, self.gamma)
         train = [r for r in self.history if r["stage"] == "q_train"]
         values = {k: v for k, v in final.items() if k.startswith("q_mean")}
+        if self.algo.q_value is not None and self.algo.data != "expert":
+            values["q_mean_data"] = self._q_mean_over_d()
         if train:
             values.update({f"train_{k}": v for k, v in train[-1].items() if k in ("q_mean", "target_value_mean", "actor_q_mean")})
         values = {k: abs(float(v)) for k, v in values.items() if isinstance(v, (int, float)) and math.isfinite(v)}
@@ -745,6 +749,16 @@ class WBRMTrainer:
         return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
                 "bound": bound, "factor": self.BLOW_UP_FACTOR,
                 "blow_up": largest is not None and largest > q_value_bound(r_max, self.gamma, self.BLOW_UP_FACTOR)}
+
+    @torch.no_grad()
+    def _q_mean_over_d(self, chunk: int = 8192) -> float:
+        """The current Q̂'s mean over D's training rows (its own state-actions), by the algo's ``q_value``."""
+        d = self.q_train_data
+        total = 0.0
+        for start in range(0, d.shape[0], chunk):
+            q, _ = self.algo.q_value(d[start:start + chunk].to(self.device))
+            total += float(q.double().sum())
+        return total / d.shape[0]
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
         """``results.json`` of a run stopped by divergence: valid JSON, ``"status": "diverged"`` and where."""
