@@ -175,10 +175,10 @@ class QConfig:
             :func:`~torchrl_wbrm.ratio.expert_like_episodes`), by its cloning error on their rows,
             ``‖(μ(x_t) − a_t) / h‖² / m`` as the actor's cloning term measures it (``"expert_like_action_error"``):
             early stopping of the policy on expert data that stage 1 found in D and the actor does not clone (it
-            does with ``expert_bc_from_d``). ``"expert_like_return"``: those of the evaluation whose Q is closest to the discounted returns of D's expert-like episodes (those the raw ŵ
-            calls the expert's, :func:`~torchrl_wbrm.ratio.expert_like_episodes`): the mean of
-            ``(Q(x_t, a_t) − G_t)²`` over their rows (``"expert_like_return_error"``), ``G_t`` the episode's own
-            discounted return from ``t``, bootstrapped at its end by the Bellman target
+            does with ``expert_bc_from_d``). ``"expert_like_return"``: those of the evaluation whose Q is closest
+            to the discounted returns of the same episodes: the mean of ``(Q(x_t, a_t) − G_t)²`` over their rows
+            (``"expert_like_return_error"``), ``G_t`` the episode's own discounted return from ``t``, bootstrapped
+            at its end by the Bellman target
             (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). It measures whether Q has carried
             the rewards back along the episodes the expert would have taken, which a one-step residual barely sees
             before Q has learned; it needs each episode's rows in time order. Both need D's episode ids; where ŵ

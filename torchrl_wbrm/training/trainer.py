@@ -490,8 +490,8 @@ class WBRMTrainer:
     def _setup_expert_like_selection(self, d: TensorDictBase, rows: torch.Tensor) -> None:
         """``q.select=expert_like_action`` or ``expert_like_return``: the rows of D's expert-like episodes (``rows``,
         a mask over ``d``) that :meth:`_selection_figures` holds the actor or Q against (for the returns, checked to
-        be whole episodes in time order). With none (ŵ ≡ 1, or no episode likelier under the expert's distribution than under
-        D's), the selection falls back to ``held_out_weighted_residual``, and the results say so."""
+        be whole episodes in time order). With none (ŵ ≡ 1, or no episode likelier under the expert's distribution
+        than under D's), the selection falls back to ``held_out_weighted_residual``, and the results say so."""
         if not bool(rows.any()):
             self.q_select_figure = "held_out_weighted_residual"
             self.q_select_data = None
