@@ -280,11 +280,12 @@ def test_image_like_observation_and_discrete_action_run(tmp_path, single_thread)
         assert res["status"] == "finished" and 0.0 <= res["final"]["return"] <= 8.0
 
 
-@pytest.mark.parametrize("algo", ["wbrm", "brm", "iql", "bc"])
+@pytest.mark.parametrize("algo", ["wbrm", "brm", "iql", "bc", "ddpg"])
 def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, algo):
     """A continuous action gets the Minari defaults (LayerNorm, 9,000 steps, the held-out weighted residual's pick)
-    for an algo that fits a Bellman residual, and the shared LayerNorm and selection for the others; a Discrete
-    action keeps the shared defaults. The command line wins over either."""
+    for an algo that fits a Bellman residual, the LayerNorm and the shared selection for DDPG, and the shared
+    LayerNorm and selection for the others; a Discrete action keeps the shared defaults. The command line wins over
+    either."""
     from torchrl_wbrm.data.tasks import MinariTask, Task
     from torchrl_wbrm.training import WBRMConfig
     from torchrl_wbrm.training.config import to_config
@@ -303,7 +304,9 @@ def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, alg
     continuous = MinariTask.TRAINING_DEFAULTS
     assert continuous["q.steps"] == 9000 and continuous["q.select"] == "held_out_weighted_residual"
     pick = (continuous if residual else shared)
-    assert resolved(_config()) == (pick["q.layer_norm"], 9000, 1500, pick["q.select"])
+    layer_norm = (continuous if residual or algo == "ddpg" else shared)["q.layer_norm"]
+    assert layer_norm is (residual or algo == "ddpg")
+    assert resolved(_config()) == (layer_norm, 9000, 1500, pick["q.select"])
     assert resolved(_cartpole_config(cartpole_grid)) == (False, 3000, 500, "last")
     assert resolved(_config(), layer_norm=False, steps=7, select="last") == (False, 7, 1500, "last")
 

@@ -34,6 +34,10 @@ class AlgoSpec:
             evaluations on the held-out D episodes; the task's defaults of
             :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` (Q's LayerNorm, ``q.select``) apply to
             it, and the shared ones to the others (:func:`~torchrl_wbrm.training.config.resolve_defaults`).
+        critic_layer_norm: the task's default of Q's LayerNorm (``q.layer_norm``) applies to it although it fits no
+            Bellman residual (``q.select`` stays the shared one): an algo whose reference has nothing that keeps its
+            critic on the data, so that its Q, left without the LayerNorm, grows without bound on a task's data
+            (DDPG).
         loss, reference: one line each (Markdown) for the docs' table.
         loss_title: the title of the training-loss panel of ``training_curve.png``.
     """
@@ -44,6 +48,7 @@ class AlgoSpec:
     validate: Callable[[Any, str], None] | None = None
     fits_ratio: bool | Callable[[Any], bool] = False
     bellman_residual: bool = False
+    critic_layer_norm: bool = False
     loss: str = ""
     reference: str = ""
     loss_title: str = ""
@@ -61,8 +66,8 @@ ALGOS: dict[str, AlgoSpec] = {}
 
 
 def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio=False,
-                  bellman_residual: bool = False, loss: str = "", reference: str = "", loss_title: str = ""
-                  ) -> Callable:
+                  bellman_residual: bool = False, critic_layer_norm: bool = False, loss: str = "",
+                  reference: str = "", loss_title: str = "") -> Callable:
     """Decorator: register ``build(context) -> Algo`` under ``name`` (returns the builder unchanged).
 
     ``config`` must be a dataclass (its defaults are the ``algo/<name>`` node's); a name registered twice is an error.
@@ -75,8 +80,8 @@ def register_algo(name: str, *, config: type | None = None, validate=None, fits_
     def decorator(build: Callable) -> Callable:
         if name in ALGOS:
             raise ValueError(f"register_algo: the algo {name!r} is registered already ({ALGOS[name].build.__module__}).")
-        ALGOS[name] = AlgoSpec(name, build, config, validate, fits_ratio, bellman_residual, loss, reference,
-                               loss_title or f"{name}: training losses")
+        ALGOS[name] = AlgoSpec(name, build, config, validate, fits_ratio, bellman_residual, critic_layer_norm,
+                               loss, reference, loss_title or f"{name}: training losses")
         return build
 
     return decorator

@@ -123,7 +123,7 @@ class QConfig:
         layer_norm, actor_layer_norm: a LayerNorm after each hidden layer of Q (and of every critic/value network)
             / of the actor. ``layer_norm`` null: the env's, on for Minari datasets with a continuous action (it
             holds Q's residual and the return as the budget grows on the benchmark's tasks), off for a discrete action, for
-            LQR and MountainCar, and for every algo without a Bellman residual (TD3+BC, IQL, CQL, ...).
+            LQR and MountainCar, and for the algos without a Bellman residual but DDPG (TD3+BC, IQL, CQL, ...).
         ensemble_size: independently initialised Q networks whose outputs are reduced by ``ensemble_reduction``
             (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
         value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
@@ -421,8 +421,9 @@ def resolve_defaults(cfg, task: Task | None = None):
     (:meth:`~torchrl_wbrm.data.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
     activation and LayerNorm, the step budget, the parameters delivered (``q.select``) and the evaluation sizes; for an
     algo without a Bellman residual (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`) the shared defaults of
-    :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` instead of the task's. A copy; settings already
-    given are kept as they are.
+    :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` instead of the task's, but the task's LayerNorm
+    for one with :attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm`. A copy; settings already given are kept as
+    they are.
 
     The trainer resolves the config it is given this way, so ``WBRMTrainer(WBRMConfig(env=...))`` runs the same
     method as ``python recipes/wbrm_offline.py env=...``. ``task``: the env's task, when built already (else built
@@ -442,7 +443,9 @@ def resolve_defaults(cfg, task: Task | None = None):
     defaults = (task if task is not None else get_task(cfg.env)).training_defaults()
     spec = ALGOS.get(cfg.algo)
     if spec is not None and not spec.bellman_residual:  # the shared defaults, as the algo's reference defines it
-        defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in Task.BELLMAN_RESIDUAL_SETTINGS})
+        kept = {"q.layer_norm"} if spec.critic_layer_norm else set()
+        defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in Task.BELLMAN_RESIDUAL_SETTINGS
+                         if key not in kept})
     for key, value in defaults.items():
         section, name = key.split(".")
         node = getattr(cfg, section)

@@ -91,7 +91,8 @@ class Task(ABC):
 
     #: the settings whose task default applies to an algo that fits a Bellman residual only
     #: (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`: WBRM, BRM, FQI, MABO); every other algo (BC and the
-    #: baselines TD3+BC, IQL, CQL, ...) gets the shared values above, its critics as its reference defines them.
+    #: baselines TD3+BC, IQL, CQL, ...) gets the shared values above, its critics as its reference defines them,
+    #: but the task's LayerNorm goes to an algo with :attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm` (DDPG).
     #: ``q.select`` scores evaluations by the held-out Bellman residual, which only those algos fit.
     BELLMAN_RESIDUAL_SETTINGS: ClassVar[tuple[str, ...]] = ("q.layer_norm", "q.select")
 

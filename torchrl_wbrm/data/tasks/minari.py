@@ -30,8 +30,8 @@ class MinariTask(Task):
     #: for a continuous (``Box``) action, the shared defaults but: a LayerNorm in every critic, three times the budget
     #: (9,000 steps, evaluated every 1,500) and the evaluation with the lowest ŵ-weighted Bellman residual on the
     #: held-out D episodes delivered (``q.select``; the LayerNorm and the selection apply to an algo that fits a Bellman
-    #: residual, :attr:`~Task.BELLMAN_RESIDUAL_SETTINGS`). On the benchmark's four tasks
-    #: (``torchrl_wbrm.data.benchmark``), with 3 demonstrations and one behaviour episode in ten the expert's, the
+    #: residual, :attr:`~Task.BELLMAN_RESIDUAL_SETTINGS`, and the LayerNorm to DDPG's critic). On the benchmark's four
+    #: tasks (``torchrl_wbrm.data.benchmark``), with 3 demonstrations and one behaviour episode in ten the expert's, the
     #: shared defaults score 82, 86, 83 and 100 normalised (Pendulum, MountainCar, LunarLander, InvertedPendulum; 5
     #: seeds) and these 101, 97, 93 and 100 (5–20 seeds); with 1 demonstration 102 and 78 (Pendulum, LunarLander)
     #: against 51 and 71; with 100 the same or higher on every task. The LayerNorm holds Q's held-out residual as the
