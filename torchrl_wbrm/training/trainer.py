@@ -40,6 +40,7 @@ from torchrl_wbrm.data.tasks import Evaluator, Task, get_task
 from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.modules.action_scaling import ActionScaling
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_returns, q_value_bound
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
@@ -636,15 +637,14 @@ class WBRMTrainer:
             out["held_out_weighted_residual"] = (weights * delta2).mean().item()
         if self.q_select_figure == "expert_like_action_error":
             d = self.q_select_data
-            spec = self.action_spec
             training = self.actor.training
             self.actor.eval()  # as evaluated, also where the final selection scores the last step
             try:
                 mu = self.actor(d.select("observation").to(self.device))["action"]
             finally:
                 self.actor.train(training)
-            out["expert_like_action_error"] = action_cloning(
-                mu, d["action"].to(mu), ((spec.space.high - spec.space.low) / 2).to(mu)).item()
+            half_width = ActionScaling(self.action_spec).half_width
+            out["expert_like_action_error"] = action_cloning(mu, d["action"].to(mu), half_width.to(mu)).item()
         if self.q_select_figure == "expert_like_return_error":
             d = self.q_select_data
             q, y = loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
@@ -754,10 +754,7 @@ class WBRMTrainer:
     def _q_mean_over_d(self, chunk: int = 8192) -> float:
         """The current Q̂'s mean over D's training rows (its own state-actions), by the algo's ``q_value``."""
         d = self.q_train_data
-        total = 0.0
-        for start in range(0, d.shape[0], chunk):
-            q, _ = self.algo.q_value(d[start:start + chunk].to(self.device))
-            total += float(q.double().sum())
+        total = sum(float(self.algo.q_value(rows.to(self.device))[0].double().sum()) for rows in d.split(chunk))
         return total / d.shape[0]
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
