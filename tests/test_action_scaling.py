@@ -116,6 +116,20 @@ def test_unit_q_network_reads_unit_actions_as_the_box_network_reads_box_actions(
     assert set(dict(q_unit.named_parameters())) == {f"module.net.{k}" for k, _ in q_box.module.named_parameters()}
 
 
+def test_the_unit_action_maps_go_where_the_networks_are():
+    """A Q network or an actor built on another device (``device=cuda``; here torch's ``meta`` device, which every
+    machine has) gets the map's constants there too, so neither mixes devices in its forward pass."""
+    from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
+
+    scaling = ActionScaling(Bounded(-2.0, 2.0, (2,)))
+    q_unit = scaling.unit_q_network(make_q_network(3, 2, initial_bias=0.0, num_cells=(16,)).to("meta"))
+    policy = scaling.policy(make_deterministic_actor(3, scaling.unit_spec, num_cells=(16,)).to("meta"))
+    for module in (q_unit, policy):
+        assert {t.device.type for t in (*module.parameters(), *module.buffers())} == {"meta"}
+    td = TensorDict({"observation": torch.zeros(4, 3, device="meta"), "action": torch.zeros(4, 2, device="meta")}, [4])
+    assert q_unit(td)["state_action_value"].shape == (4, 1)
+
+
 @pytest.mark.parametrize("unit_input", [False, True])
 def test_iql_q_reads_the_box_action_or_with_unit_action_input_the_unit_action(tmp_path, unit_input):
     trainer = WBRMTrainer(tiny_config(algo="iql", baselines={"iql": {"unit_action_input": unit_input}}), tmp_path,

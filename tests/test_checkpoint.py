@@ -277,3 +277,17 @@ def test_sigkill_then_resume_gives_the_uninterrupted_figures(uninterrupted, tmp_
     resumed = inprocess.recipe(f"resume={run_dir}", cwd=tmp_path, env=_env())
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert _figures(run_dir) == uninterrupted
+
+
+def test_the_cuda_generators_are_saved_only_where_cuda_was_used_and_restored_only_where_it_exists():
+    from torchrl_wbrm.training import get_rng_state, set_rng_state
+
+    state = get_rng_state()
+    assert ("cuda" in state) == torch.cuda.is_initialized()
+    set_rng_state(state)  # what this process saved, it restores
+    if torch.cuda.is_available():
+        return
+    state["cuda"] = [torch.zeros(16, dtype=torch.uint8)]  # saved on a CUDA machine, resumed on this one
+    with pytest.raises(RuntimeError, match=r"^Cannot restore the random state of 1 CUDA device\(s\) saved with this "
+                                           r"checkpoint: this machine has 0\.$"):
+        set_rng_state(state)

@@ -108,3 +108,18 @@ def test_evaluate_returns_on_batched_mountain_car_counts_each_episode_once():
     assert res.n == episodes and 97 < res.mean < 100  # each return is 100 - 0.009 * length
     one_by_one = evaluate_returns(make_mountain_car_env(), policy, episodes=3, seed=0)
     assert abs(res.mean - one_by_one.mean) < 0.5
+
+
+def test_a_policy_on_another_device_than_the_env_gets_torchrls_cast():
+    """A policy trained on an accelerator (here on torch's ``meta`` device) acting in an env that steps on the CPU
+    gets ``auto_cast_to_device``; a policy on the env's device, or one without parameters, takes the plain rollout
+    (the LQR env's shortcut among them). The rollout itself on CUDA: ``tests/test_fast_gpu.py``."""
+    from torch import nn
+
+    from torchrl_wbrm.evaluation.metrics import _cast_to
+
+    policy = TensorDictModule(nn.Linear(2, 2), in_keys=["observation"], out_keys=["action"])
+    assert _cast_to(policy, torch.device("cpu")) == {} and _cast_to(policy, "cpu") == {}
+    assert _cast_to(lambda td: td, "cpu") == {}
+    assert _cast_to(policy.to("meta"), torch.device("cpu")) == {"auto_cast_to_device": True}
+    assert _cast_to(policy, None) == {}

@@ -108,3 +108,66 @@ def test_trainer_divergence_check_on_cuda_reads_the_device_only_on_check_steps(t
         assert trainer._non_finite_figure(bad, read=False) is None  # not read yet
     assert trainer._non_finite_figure(good, read=True) is not None  # the window held a NaN
     assert trainer._non_finite_figure(good, read=True) is None
+
+
+
+def _not_on(trainer, device_type: str) -> list[str]:
+    """The trained loss's parameters and buffers (its networks and the fixed maps inside them) not on ``device_type``."""
+    loss = trainer.q_loss
+    return [name for name, t in (*loss.named_parameters(), *loss.named_buffers()) if t.device.type != device_type]
+
+
+@pytest.mark.parametrize("algo", ["wbrm", "bc", "brm", "cql", "ddpg", "dqn", "fqi", "iql", "mabo", "td3bc"])
+def test_each_algo_trains_on_cuda_and_resumes_as_the_uninterrupted_run(tmp_path, algo):
+    """Every algo's networks, the unit-action maps of TD3+BC, IQL and CQL and the evaluated policy live on the device,
+    and a run cut on the device resumes from its checkpoint to the uninterrupted run's results (the CUDA generator,
+    which draws the batches and the losses' noise there, is in the checkpoint)."""
+    from torchrl_wbrm.algos import ALGOS
+    from torchrl_wbrm.training import WBRMTrainer
+
+    from tests.test_training import tiny_config
+
+    assert algo in ALGOS
+    cfg = tiny_config(algo=algo, device="cuda")
+    whole = WBRMTrainer(cfg, tmp_path / "whole", progress=False)
+    results = whole.run()
+    assert results["final"]["return"] == results["final"]["return"]  # present and not NaN
+    assert _not_on(whole, "cuda") == []
+    cut = WBRMTrainer(cfg, tmp_path / "cut", progress=False)
+    assert cut.run(until=15) is None
+    resumed = WBRMTrainer(cfg, tmp_path / "cut", progress=False, resume=True).run()
+    assert resumed["final"] == results["final"]
+
+
+def test_seeds_in_one_process_on_cuda(tmp_path):
+    from torchrl_wbrm.training.seeds import run_seeds
+
+    from tests.test_training import tiny_config
+
+    out = run_seeds(tiny_config(algo="wbrm", device="cuda", seeds=[0, 1]), tmp_path / "run", progress=False)
+    assert out["not_vectorised_because"] is None
+    assert len(out["runs"]) == 2 and all(r["final"]["return"] == r["final"]["return"] for r in out["runs"])
+
+
+@pytest.mark.parametrize("where", ["gym", "lqr"])
+def test_a_policy_on_cuda_is_evaluated_in_an_env_on_the_cpu(where):
+    """The evaluators' envs step on the CPU (a gym env; the LQR env they build): a policy trained on the device
+    acts there through torchrl's rollout cast, with the returns of the same policy on the CPU."""
+    from tensordict.nn import TensorDictModule
+    from torch import nn
+
+    from torchrl_wbrm.evaluation.metrics import evaluate_returns, lqr_paired_regret
+
+    torch.manual_seed(0)
+    if where == "gym":
+        from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+
+        env = TransformedEnv(GymEnv("Pendulum-v1", device="cpu"), DoubleToFloat())
+        net = nn.Sequential(nn.Linear(3, 1), nn.Tanh())
+        score = lambda policy: evaluate_returns(env, policy, episodes=2, seed=0, max_steps=50).mean  # noqa: E731
+    else:
+        net = nn.Linear(2, 2)
+        score = lambda policy: lqr_paired_regret("exp1", policy, episodes=20, seed=0)["regret"].mean  # noqa: E731
+    on_cpu = score(TensorDictModule(net, in_keys=["observation"], out_keys=["action"]))
+    on_cuda = score(TensorDictModule(net.cuda(), in_keys=["observation"], out_keys=["action"]))
+    assert on_cuda == pytest.approx(on_cpu, rel=1e-4, abs=1e-4)

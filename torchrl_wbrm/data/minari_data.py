@@ -630,7 +630,7 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
             genv = gym.wrappers.TransformAction(
                 genv, lambda a, shape=tuple(box.shape), dtype=box.dtype: np.asarray(a, dtype=dtype).reshape(shape),
                 gym.spaces.Box(box.low.reshape(-1), box.high.reshape(-1), dtype=box.dtype))
-    base = GymWrapper(genv, categorical_action_encoding=False)
+    base = GymWrapper(genv, categorical_action_encoding=False, device="cpu")
     transforms = []
     if metadata.get("discrete_actions"):
         transforms.append(ScoresToOneHot())

@@ -54,6 +54,23 @@ def discounted_returns(rollout: TensorDictBase, gamma: float) -> torch.Tensor:
     return (reward * discount).sum(-1)
 
 
+def _device_of(policy) -> torch.device | None:
+    """The device of ``policy``'s first parameter (``None`` for a policy without parameters)."""
+    for parameter in getattr(policy, "parameters", lambda: ())():
+        return parameter.device
+    return None
+
+
+def _cast_to(policy, env_device) -> dict:
+    """``env.rollout``'s arguments for ``policy`` in an env on ``env_device``: a policy on another device (trained on
+    an accelerator, acting in an env that steps on the CPU) gets torchrl's cast, each step's TensorDict moved to the
+    policy's device and its action back; otherwise none."""
+    policy_device = _device_of(policy)
+    if policy_device is None or env_device is None or policy_device == torch.device(env_device):
+        return {}
+    return {"auto_cast_to_device": True}
+
+
 @torch.no_grad()
 def evaluate_returns(env, policy, *, episodes: int, seed: int, gamma: float = 1.0, max_steps: int = 1000) -> MeanCI:
     """Mean return of ``policy`` (deterministic) over ``episodes`` fresh episodes, with a 95% CI.
@@ -62,17 +79,19 @@ def evaluate_returns(env, policy, *, episodes: int, seed: int, gamma: float = 1.
     each episode seeded with ``seed + i``.
     """
     returns = []
+    cast = _cast_to(policy, env.device)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         if env.batch_size.numel() > 1:
             if env.batch_size.numel() != episodes:
                 raise ValueError(f"A batched env must have batch size [episodes]={episodes}, got {env.batch_size}.")
             env.set_seed(seed)
-            rollout = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True)
+            rollout = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True,
+                                  **cast)
             returns.append(discounted_returns(rollout, gamma))
         else:
             for i in range(episodes):
                 env.set_seed(seed + i)
-                rollout = env.rollout(max_steps, policy)
+                rollout = env.rollout(max_steps, policy, **cast)
                 returns.append(discounted_returns(rollout, gamma).reshape(1))
     return mean_ci(torch.cat(returns))
 
@@ -95,7 +114,7 @@ def lqr_paired_regret(
     horizon, gamma = base.config.horizon, base.config.gamma
     optimal = TensorDictModule(FiniteHorizonLQRPolicy(base), in_keys=["observation", "step_count"], out_keys=["action"])
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        ret_policy = discounted_returns(env_policy.rollout(horizon, policy), gamma)
+        ret_policy = discounted_returns(env_policy.rollout(horizon, policy, **_cast_to(policy, base.device)), gamma)
         ret_optimal = discounted_returns(env_optimal.rollout(horizon, optimal), gamma)
     return {
         "return": mean_ci(ret_policy),

@@ -28,6 +28,13 @@ from torchrl.modules import ValueOperator
 __all__ = ["ActionScaling", "BoxActionInput", "FromUnitAction"]
 
 
+def _device_of(module: nn.Module) -> torch.device:
+    """Where ``module`` keeps its parameters (its first parameter or buffer; the CPU for a module with neither)."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")
+
+
 class FromUnitAction(nn.Module):
     """``u ↦ c + h · u``: a unit action to the box (a module, so the evaluated policy is one TensorDict pipeline)."""
 
@@ -98,8 +105,8 @@ class ActionScaling:
 
     def policy(self, actor: TensorDictModuleBase) -> TensorDictSequential:
         """``actor`` (acting in unit actions) followed by the map to the box: what the env runs."""
-        to_box = TensorDictModule(FromUnitAction(self.centre, self.half_width), in_keys=[self.action_key],
-                                  out_keys=[self.action_key])
+        to_box = TensorDictModule(FromUnitAction(self.centre, self.half_width).to(_device_of(actor)),
+                                  in_keys=[self.action_key], out_keys=[self.action_key])
         return TensorDictSequential(actor, to_box)
 
     def unit_q_network(self, q_network: ValueOperator) -> ValueOperator:
@@ -109,8 +116,9 @@ class ActionScaling:
         in_keys, out_keys = list(q_network.in_keys), list(q_network.out_keys)
         if len(in_keys) != 2:
             raise ValueError(f"unit_q_network needs a Q network of (observation, action), got in_keys={in_keys}.")
-        return ValueOperator(BoxActionInput(q_network.module, self.centre, self.half_width), in_keys=in_keys,
-                             out_keys=out_keys)
+        box_input = BoxActionInput(q_network.module, self.centre, self.half_width)
+        # the map's constants go where the network is: a Q network built on an accelerator stays there
+        return ValueOperator(box_input.to(_device_of(q_network)), in_keys=in_keys, out_keys=out_keys)
 
     def q_reader(self, q_value):
         """Wrap a reader ``q_value(td) -> (Q̂, action)`` of a unit-action Q so it reads ``td``'s box actions."""

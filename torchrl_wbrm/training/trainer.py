@@ -73,11 +73,16 @@ def set_seed(seed: int) -> None:
 
 def get_rng_state() -> dict:
     """torch's, NumPy's and Python's global random states, as tensors and primitives only (NumPy's array becomes an
-    ``int64`` tensor), so a checkpoint holding them reads with ``torch.load(weights_only=True)``."""
+    ``int64`` tensor), so a checkpoint holding them reads with ``torch.load(weights_only=True)``. Where this process
+    has used CUDA (``device=cuda``: batches drawn, noise and random actions sampled on the device), each CUDA
+    device's generator state too (``"cuda"``)."""
     name, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
     numpy_state = {"name": str(name), "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
                    "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)}
-    return {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": random.getstate()}
+    state = {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": random.getstate()}
+    if torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
 
 
 def set_rng_state(state: dict) -> None:
@@ -89,6 +94,11 @@ def set_rng_state(state: dict) -> None:
                        numpy_state["has_gauss"], numpy_state["cached_gaussian"])
     np.random.set_state(numpy_state)
     random.setstate(state["python"])
+    if "cuda" in state:
+        if not torch.cuda.is_available() or torch.cuda.device_count() < len(state["cuda"]):
+            raise RuntimeError(f"Cannot restore the random state of {len(state['cuda'])} CUDA device(s) saved with "
+                               f"this checkpoint: this machine has {torch.cuda.device_count()}.")
+        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def step_schedulers(schedulers: dict) -> None:
