@@ -12,6 +12,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_wbrm._devices import device_of
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation.stats import MeanCI, mean_ci
 
@@ -54,18 +55,11 @@ def discounted_returns(rollout: TensorDictBase, gamma: float) -> torch.Tensor:
     return (reward * discount).sum(-1)
 
 
-def _device_of(policy) -> torch.device | None:
-    """The device of ``policy``'s first parameter (``None`` for a policy without parameters)."""
-    for parameter in getattr(policy, "parameters", lambda: ())():
-        return parameter.device
-    return None
-
-
 def _cast_to(policy, env_device) -> dict:
     """``env.rollout``'s arguments for ``policy`` in an env on ``env_device``: a policy on another device (trained on
     an accelerator, acting in an env that steps on the CPU) gets torchrl's cast, each step's TensorDict moved to the
     policy's device and its action back; otherwise none."""
-    policy_device = _device_of(policy)
+    policy_device = device_of(policy)
     if policy_device is None or env_device is None or policy_device == torch.device(env_device):
         return {}
     return {"auto_cast_to_device": True}

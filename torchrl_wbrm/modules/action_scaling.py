@@ -25,14 +25,9 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ValueOperator
 
+from torchrl_wbrm._devices import device_of
+
 __all__ = ["ActionScaling", "BoxActionInput", "FromUnitAction"]
-
-
-def _device_of(module: nn.Module) -> torch.device:
-    """Where ``module`` keeps its parameters (its first parameter or buffer; the CPU for a module with neither)."""
-    for tensor in (*module.parameters(), *module.buffers()):
-        return tensor.device
-    return torch.device("cpu")
 
 
 class FromUnitAction(nn.Module):
@@ -105,7 +100,7 @@ class ActionScaling:
 
     def policy(self, actor: TensorDictModuleBase) -> TensorDictSequential:
         """``actor`` (acting in unit actions) followed by the map to the box: what the env runs."""
-        to_box = TensorDictModule(FromUnitAction(self.centre, self.half_width).to(_device_of(actor)),
+        to_box = TensorDictModule(FromUnitAction(self.centre, self.half_width).to(device_of(actor) or "cpu"),
                                   in_keys=[self.action_key], out_keys=[self.action_key])
         return TensorDictSequential(actor, to_box)
 
@@ -118,7 +113,7 @@ class ActionScaling:
             raise ValueError(f"unit_q_network needs a Q network of (observation, action), got in_keys={in_keys}.")
         box_input = BoxActionInput(q_network.module, self.centre, self.half_width)
         # the map's constants go where the network is: a Q network built on an accelerator stays there
-        return ValueOperator(box_input.to(_device_of(q_network)), in_keys=in_keys, out_keys=out_keys)
+        return ValueOperator(box_input.to(device_of(q_network) or "cpu"), in_keys=in_keys, out_keys=out_keys)
 
     def q_reader(self, q_value):
         """Wrap a reader ``q_value(td) -> (Q̂, action)`` of a unit-action Q so it reads ``td``'s box actions."""
