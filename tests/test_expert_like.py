@@ -32,6 +32,37 @@ def test_a_flat_ratio_selects_nothing_and_a_zero_step_rules_an_episode_out():
         [True, True, False, False, False]
 
 
+
+def test_the_recorded_figures_count_the_true_episodes_a_threshold_could_separate():
+    """``separable_true_episodes``: D's true expert episodes that score above every other episode of D. The data name
+    episodes 3, 4, 7 and 11 the expert's; D holds the first three."""
+    from types import SimpleNamespace
+
+    from tensordict import TensorDict
+
+    from torchrl_wbrm.training.trainer import WBRMTrainer
+
+    owner = SimpleNamespace(datasets=SimpleNamespace(metadata={"behaviour_expert_episode_ids": [3, 4, 7, 11]}))
+
+    def figures(w, episode):
+        d = TensorDict({"episode": torch.tensor(episode).reshape(-1, 1)}, batch_size=[len(episode)])
+        rows, out = WBRMTrainer._expert_like(owner, d, torch.tensor(w).reshape(-1, 1))
+        return rows.tolist(), out
+
+    # mean ŵ 11.7 / 7; the scores (geometric means of ŵ / mean ŵ): ep 3: 2.39, ep 4: 0.90, ep 7: 0.12, random ep 2:
+    # 0.24, random ep 5: 0.06. Episodes 3 and 4 score above every random one; the even-odds test takes episode 3 only
+    rows, out = figures([4.0, 4.0, 1.5, 1.5, 0.2, 0.4, 0.1], [3, 3, 4, 4, 7, 2, 5])
+    assert rows == [True, True, False, False, False, False, False]
+    assert out == {"expert_like_episodes": 1, "expert_like_rows": 2, "expert_like_true_episodes": 1,
+                   "true_expert_episodes": 3, "separable_true_episodes": 2}
+    # a random episode 6 scoring 2.15 (mean ŵ 2; ep 3 now 2.0): the test selects it with episode 3, and no threshold
+    # separates any true episode from it
+    rows, out = figures([4.0, 4.0, 1.5, 1.5, 0.2, 0.4, 0.1, 4.3], [3, 3, 4, 4, 7, 2, 5, 6])
+    assert rows == [True, True, False, False, False, False, False, True]
+    assert out == {"expert_like_episodes": 2, "expert_like_rows": 3, "expert_like_true_episodes": 1,
+                   "true_expert_episodes": 3, "separable_true_episodes": 0}
+
+
 def test_bad_input_is_refused_naming_the_shapes():
     with pytest.raises(ValueError, match="positive mean"):
         expert_like_episodes(torch.zeros(3), torch.tensor([0, 0, 1]))
@@ -171,3 +202,5 @@ def test_stage_1_finds_the_expert_episodes_hidden_in_d(tmp_path):
     assert stats["true_expert_episodes"] >= 2, stats  # D holds some of the 6 hidden expert episodes
     assert stats["expert_like_true_episodes"] == stats["expert_like_episodes"], stats  # nothing random added
     assert stats["expert_like_episodes"] >= stats["true_expert_episodes"] / 2, stats
+    # with nothing random selected, every episode found scores above every other: a threshold could do no worse
+    assert stats["expert_like_true_episodes"] <= stats["separable_true_episodes"] <= stats["true_expert_episodes"]

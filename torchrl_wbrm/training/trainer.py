@@ -541,15 +541,26 @@ class WBRMTrainer:
     def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``). Returns their
         row mask and the figures recorded with the weights: how many episodes and rows they hold, and, where the data
-        name D's true expert episodes, how many of them are among those and how many of those D holds."""
+        name D's true expert episodes, how many of them are among those, how many of those D holds, and how many of
+        them score above every other episode of D (``separable_true_episodes``: the most that any threshold on the
+        episode score could select with no other episode among them; where it exceeds ``expert_like_true_episodes``
+        the even-odds test is what misses them, where it does not, ŵ itself)."""
         rows = expert_like_episodes(w, d["episode"])  # D's episode ids: checked before stage 1
-        episodes = d["episode"].reshape(-1)[rows].unique()
+        episode = d["episode"].reshape(-1)
+        episodes = episode[rows].unique()
         figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
         true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
         if true_ids is not None:
             true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
             figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
-            figures["true_expert_episodes"] = int(torch.isin(d["episode"].reshape(-1).unique(), true_ids).sum())
+            ids, first = episode.unique(return_inverse=True)
+            figures["true_expert_episodes"] = int(torch.isin(ids, true_ids).sum())
+            flat = w.reshape(-1).double()  # the test's score: each episode's geometric mean of ŵ / mean ŵ
+            score = torch.zeros(ids.numel(), dtype=torch.float64).scatter_reduce(
+                0, first, episode_weights(flat / flat.mean(), episode), reduce="amax", include_self=False)
+            is_true = torch.isin(ids, true_ids)
+            best_other = score[~is_true].max() if bool((~is_true).any()) else score.new_tensor(-math.inf)
+            figures["separable_true_episodes"] = int((score[is_true] > best_other).sum())
         return rows, figures
 
     def _check_ratio(self, w: torch.Tensor) -> dict:
