@@ -543,8 +543,8 @@ class WBRMTrainer:
         row mask and the figures recorded with the weights: how many episodes and rows they hold, and, where the data
         name D's true expert episodes, how many of them are among those, how many of those D holds, and how many of
         them score above every other episode of D (``separable_true_episodes``: the most that any threshold on the
-        episode score could select with no other episode among them; where it exceeds ``expert_like_true_episodes``
-        the even-odds test is what misses them, where it does not, ŵ itself)."""
+        episode score could select with no other episode among them; above ``expert_like_true_episodes``, the
+        even-odds test left some that a lower threshold would have taken)."""
         rows = expert_like_episodes(w, d["episode"])  # D's episode ids: checked before stage 1
         episode = d["episode"].reshape(-1)
         episodes = episode[rows].unique()
@@ -553,11 +553,11 @@ class WBRMTrainer:
         if true_ids is not None:
             true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
             figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
-            ids, first = episode.unique(return_inverse=True)
+            ids, inverse = episode.unique(return_inverse=True)
             figures["true_expert_episodes"] = int(torch.isin(ids, true_ids).sum())
             flat = w.reshape(-1).double()  # the test's score: each episode's geometric mean of ŵ / mean ŵ
             score = torch.zeros(ids.numel(), dtype=torch.float64).scatter_reduce(
-                0, first, episode_weights(flat / flat.mean(), episode), reduce="amax", include_self=False)
+                0, inverse, episode_weights(flat / flat.mean(), episode), reduce="amax", include_self=False)
             is_true = torch.isin(ids, true_ids)
             best_other = score[~is_true].max() if bool((~is_true).any()) else score.new_tensor(-math.inf)
             figures["separable_true_episodes"] = int((score[is_true] > best_other).sum())
