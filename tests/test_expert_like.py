@@ -32,7 +32,6 @@ def test_a_flat_ratio_selects_nothing_and_a_zero_step_rules_an_episode_out():
         [True, True, False, False, False]
 
 
-
 def test_the_recorded_figures_count_the_true_episodes_a_threshold_could_separate():
     """``separable_true_episodes``: D's true expert episodes that score above every other episode of D. The data name
     episodes 3, 4, 7 and 11 the expert's; D holds the first three."""

@@ -12,7 +12,8 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   ``NATIVE_PRIORITY_WEIGHT_LOSSES``); in a replay buffer the weights follow their rows
   (:class:`StoredWeightsFollowRows`). :func:`episode_weights` first gives each row its episode's weight, the
   geometric mean of ŵ over the episode (``ratio.aggregate=episode``); :func:`expert_like_episodes` selects the
-  episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``).
+  episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``), the score
+  :func:`expert_like_scores` gives each row.
 """
 from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
 from torchrl_wbrm.ratio.storing import (
@@ -22,7 +23,7 @@ from torchrl_wbrm.ratio.storing import (
     compute_density_ratio,
     store_density_ratio,
 )
-from torchrl_wbrm.ratio.weights import episode_weights, expert_like_episodes, shape_weights
+from torchrl_wbrm.ratio.weights import episode_weights, expert_like_episodes, expert_like_scores, shape_weights
 
 __all__ = [
     "DensityRatioFit",
@@ -34,6 +35,7 @@ __all__ = [
     "compute_density_ratio",
     "episode_weights",
     "expert_like_episodes",
+    "expert_like_scores",
     "fit_density_ratio",
     "holdout_split",
     "shape_weights",

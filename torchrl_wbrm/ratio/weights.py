@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["episode_weights", "expert_like_episodes", "shape_weights"]
+__all__ = ["episode_weights", "expert_like_episodes", "expert_like_scores", "shape_weights"]
 
 
 def episode_weights(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
@@ -68,12 +68,24 @@ def expert_like_episodes(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor
         >>> expert_like_episodes(torch.ones(4), torch.tensor([0, 0, 1, 1])).any().item()
         False
     """
+    return expert_like_scores(w, episode) > 1
+
+
+def expert_like_scores(w: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+    """Each row's episode score, the one :func:`expert_like_episodes` holds against 1: the geometric mean over the
+    row's episode of ``ŵ / mean ŵ`` (:func:`episode_weights` of the self-normalised ratio), ``[N]`` in float64.
+
+    Examples:
+        >>> import torch
+        >>> expert_like_scores(torch.tensor([4.0, 1.0, 1.0]), torch.tensor([0, 0, 1]))  # mean 2: sqrt(2 · 0.5), 0.5
+        tensor([1.0000, 1.0000, 0.5000], dtype=torch.float64)
+    """
     flat = w.reshape(-1).double()
     mean = flat.mean() if flat.numel() else flat.new_ones(())
     if not mean > 0:
         raise ValueError("expert_like_episodes needs weights with a positive mean over the data, got "
                          f"{float(mean)!r}.")
-    return episode_weights(flat / mean, episode.reshape(-1)) > 1
+    return episode_weights(flat / mean, episode.reshape(-1))
 
 
 def shape_weights(

@@ -44,7 +44,7 @@ from torchrl_wbrm.modules.action_scaling import ActionScaling
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_returns, q_value_bound
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
-                                expert_like_episodes, store_density_ratio)
+                                expert_like_scores, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour, return_fell
@@ -545,22 +545,19 @@ class WBRMTrainer:
         them score above every other episode of D (``separable_true_episodes``: the most that any threshold on the
         episode score could select with no other episode among them; above ``expert_like_true_episodes``, the
         even-odds test left some that a lower threshold would have taken)."""
-        rows = expert_like_episodes(w, d["episode"])  # D's episode ids: checked before stage 1
-        episode = d["episode"].reshape(-1)
+        episode = d["episode"].reshape(-1)  # D's episode ids: checked before stage 1
+        score = expert_like_scores(w, episode)
+        rows = score > 1  # expert_like_episodes
         episodes = episode[rows].unique()
         figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
         true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
         if true_ids is not None:
             true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
             figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
-            ids, inverse = episode.unique(return_inverse=True)
-            figures["true_expert_episodes"] = int(torch.isin(ids, true_ids).sum())
-            flat = w.reshape(-1).double()  # the test's score: each episode's geometric mean of ŵ / mean ŵ
-            score = torch.zeros(ids.numel(), dtype=torch.float64).scatter_reduce(
-                0, inverse, episode_weights(flat / flat.mean(), episode), reduce="amax", include_self=False)
-            is_true = torch.isin(ids, true_ids)
-            best_other = score[~is_true].max() if bool((~is_true).any()) else score.new_tensor(-math.inf)
-            figures["separable_true_episodes"] = int((score[is_true] > best_other).sum())
+            true_rows = torch.isin(episode, true_ids)
+            figures["true_expert_episodes"] = int(episode[true_rows].unique().numel())
+            best_other = score[~true_rows].max() if bool((~true_rows).any()) else -math.inf
+            figures["separable_true_episodes"] = int(episode[true_rows & (score > best_other)].unique().numel())
         return rows, figures
 
     def _check_ratio(self, w: torch.Tensor) -> dict:
