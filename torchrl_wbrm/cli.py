@@ -22,7 +22,7 @@ from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.data.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs
 from torchrl_wbrm.training.results import write_json
-from torchrl_wbrm.training.resume import check_run_record
+from torchrl_wbrm.training.resume import read_run_record
 from torchrl_wbrm.training import stops
 from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.config import prepare_config
@@ -61,8 +61,7 @@ def with_run_overrides(args: list[str]) -> list[str]:
     if not record.is_file():  # the guard says what is missing
         return list(args)
     keys = {_override_key(a) for a in args}
-    saved = [str(o) for o in OmegaConf.load(record) or []]
-    check_run_record(record, saved)  # only the recipe's own settings: nothing for Hydra to instantiate
+    saved = read_run_record(record)  # data: only the recipe's own settings and offered values, nothing to load or run
     return [*(o for o in saved if _override_key(o) not in keys and _override_key(o) not in NOT_RESUMED), *args]
 
 

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from dataclasses import dataclass
 from typing import Callable
 
@@ -71,6 +72,7 @@ __all__ = [
     "MEDIUM_EXPERT_PROBABILITY",
     "benchmark_ids",
     "benchmark_table",
+    "check_benchmark_ids",
     "expert_episode_indices",
     "few_demonstration_ids",
     "make_benchmark",
@@ -242,19 +244,18 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
     """
     import gymnasium as gym
 
+    import shutil
+
     task = BENCHMARK_TASKS[task] if isinstance(task, str) else task
     _check_simulator(task)
     ids = benchmark_ids(task.name, namespace)
     extra_ids = few_demonstration_ids(task.name, namespace) if few_demonstrations else {}
     root = minari_data_root(data_path)
-    for kind, dataset_id in {**ids, **extra_ids}.items():
-        path = root / dataset_id
-        if path.exists():
-            if not overwrite:
-                raise FileExistsError(f"The Minari dataset {dataset_id!r} already exists at {path}: pass "
-                                      f"--overwrite to replace it, or another --data-path / --namespace.")
-            import shutil
-
+    # every id checked (syntax, inside the data path, new unless overwrite) before anything is removed or written
+    folders = check_benchmark_ids([task.name], data_path, namespace=namespace,
+                                  few_demonstrations=few_demonstrations, overwrite=overwrite)
+    for path in folders:
+        if path.exists():  # overwrite: the old dataset, inside the data path (checked above)
             shutil.rmtree(path)
     env = gym.make(task.env_id)
     expert, uniform = _policies(task, env.action_space)
@@ -351,6 +352,28 @@ def make_benchmark_task(task: BenchmarkTask | str, data_path: str | os.PathLike,
     }
 
 
+def check_benchmark_ids(names, data_path: str | os.PathLike, *, namespace: str = NAMESPACE,
+                        few_demonstrations: bool = True, overwrite: bool = False) -> list:
+    """The folders of every dataset the tasks ``names`` write under ``data_path``, each id checked first
+    (:func:`~torchrl_wbrm.data.minari_data.check_new_minari_ids`): a valid Minari id, a folder inside the data path,
+    and (unless ``overwrite``) new. Nothing is created or removed; a refusal is one line naming the id and
+    ``--namespace``."""
+    from torchrl_wbrm.data.minari_data import check_new_minari_ids
+
+    dataset_ids = []
+    for name in names:
+        dataset_ids += list(benchmark_ids(name, namespace).values())
+        if few_demonstrations:
+            dataset_ids += list(few_demonstration_ids(name, namespace).values())
+    folders = check_new_minari_ids(dataset_ids, data_path, setting="--namespace (or --data-path)", overwrite=True)
+    if not overwrite:
+        for dataset_id, path in zip(dataset_ids, folders):
+            if path.exists():
+                raise FileExistsError(f"The Minari dataset {dataset_id!r} already exists at {path}: pass "
+                                      f"--overwrite to replace it, or another --data-path / --namespace.")
+    return folders
+
+
 def make_benchmark(data_path: str | os.PathLike, *, tasks=None, seed: int = 0, **kwargs) -> list[dict]:
     """:func:`make_benchmark_task` for each of ``tasks`` (default: every task of :data:`BENCHMARK_TASKS`)."""
     names = list(BENCHMARK_TASKS) if tasks is None else list(tasks)
@@ -358,6 +381,9 @@ def make_benchmark(data_path: str | os.PathLike, *, tasks=None, seed: int = 0, *
         if name not in BENCHMARK_TASKS:
             raise ValueError(f"Unknown benchmark task {name!r}: choose from {list(BENCHMARK_TASKS)}.")
         _check_simulator(BENCHMARK_TASKS[name])  # every missing simulator before any collecting
+    check_benchmark_ids(names, data_path, namespace=kwargs.get("namespace", NAMESPACE),
+                        few_demonstrations=kwargs.get("few_demonstrations", True),
+                        overwrite=kwargs.get("overwrite", False))  # every id before anything is touched
     return [make_benchmark_task(name, data_path, seed=seed, **kwargs) for name in names]
 
 
@@ -400,9 +426,17 @@ def main(argv=None) -> None:
                         help="write only expert-v0 and behaviour-v0 (not the expert pool, the behaviour-expert<pp>-v0 "
                              "sets and medium-v0)")
     args = parser.parse_args(argv)
-    rows = make_benchmark(args.data_path, tasks=args.tasks, seed=args.seed, overwrite=args.overwrite,
-                          reference_episodes=args.reference_episodes, namespace=args.namespace,
-                          few_demonstrations=args.few_demonstrations)
+    try:
+        rows = make_benchmark(args.data_path, tasks=args.tasks, seed=args.seed, overwrite=args.overwrite,
+                              reference_episodes=args.reference_episodes, namespace=args.namespace,
+                              few_demonstrations=args.few_demonstrations)
+    except (ValueError, OSError, ModuleNotFoundError) as err:  # refused before anything was written, in one line
+        print(f"benchmark: refused: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print(f"benchmark: interrupted; a dataset being written under {args.data_path} may be incomplete: run the "
+              f"command again with --overwrite to write it anew.", file=sys.stderr)
+        sys.exit(130)
     print(benchmark_table(rows))
     for r in rows:
         print(f"{r['task']}: env.minari.data_path={args.data_path} env.minari.expert={r['expert']} "

@@ -129,6 +129,12 @@ def resolve_minari_dataset(ref: str, data_path: str | os.PathLike | None = None)
     )
 
 
+def _inside(folder: Path, root: Path) -> Path | None:
+    """``None`` if ``folder`` lies inside ``root`` once every link on the way is resolved, else where it leads."""
+    real, real_root = Path(os.path.realpath(folder)), Path(os.path.realpath(root))
+    return None if real == real_root or real_root in real.parents else real
+
+
 def check_new_minari_ids(dataset_ids: Iterable[str], data_path: str | os.PathLike | None = None, *,
                          setting: str, overwrite: bool = False) -> list[Path]:
     """Refuse to write over existing Minari datasets, before anything is collected.
@@ -154,6 +160,11 @@ def check_new_minari_ids(dataset_ids: Iterable[str], data_path: str | os.PathLik
             raise ValueError(f"{dataset_id!r} is not a Minari dataset id (namespace/name-vN): set {setting} to "
                              f"letters, digits, '_', '-' and '/'. ({err})") from None
         folder = root / dataset_id
+        inside = _inside(folder, root)
+        if inside is not None:
+            raise ValueError(f"The Minari dataset {dataset_id!r} would be written at {inside}, outside the Minari data "
+                             f"path {root} (a link on the way leads out); nothing was written. Choose other ids with "
+                             f"{setting}, or another data path.")
         if folder.exists() and not overwrite:
             raise FileExistsError(
                 f"The Minari dataset {dataset_id!r} already exists ({folder}, Minari data path {root}); nothing was "

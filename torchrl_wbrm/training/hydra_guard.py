@@ -43,7 +43,9 @@ class RunDirGuard(Callback):
       a checkpoint whose config this one may continue, and ``X`` is claimed;
     * a new run: the default dated directory is created with an exclusive ``mkdir`` (``_1``, ``_2``, ... when two
       runs start in the same second), a given ``hydra.run.dir`` is claimed and must not hold a run unless
-      ``overwrite=true``, which then removes the earlier run's outputs and its Hydra record.
+      ``overwrite=true``, which then removes the earlier run's outputs, its Hydra record and Hydra's job log
+      (``<job name>.log``), nothing else;
+    * a directory where something the run writes into (``.hydra/``, ``logs/``, ...) is a symbolic link is refused.
 
     The claim is handed to the run's :class:`~torchrl_wbrm.training.WBRMTrainer` (:func:`take_claim`), which holds it
     until the run ends. A refusal exits (``SystemExit``, status 1) with the reason in one line, and with the
@@ -90,8 +92,8 @@ class RunDirGuard(Callback):
                     if created:
                         remove_empty(run_dir)
                     raise
-                if cfg.overwrite and holds_run(run_dir):  # the earlier run goes, record and logs too
-                    clear_run_outputs(run_dir, hydra_record=True)
+                if cfg.overwrite and holds_run(run_dir):  # the earlier run goes, its record and Hydra's job log too
+                    clear_run_outputs(run_dir, hydra_record=True, job_name=_job_name(config))
         _set_run_dir(config, run_dir)
         hand_over(claim)
         _PREPARED[run_dir.resolve()] = prepared
@@ -113,6 +115,12 @@ def _task_config(config):
 def _set_run_dir(config, run_dir: Path) -> None:
     with read_write(config.hydra), open_dict(config.hydra):
         config.hydra.run.dir = str(run_dir)
+
+
+def _job_name(config) -> str | None:
+    """Hydra's job name (its job log is ``<job name>.log``), or ``None`` where the config does not say."""
+    name = OmegaConf.select(config, "hydra.job.name", default=None)
+    return str(name) if name else None
 
 
 def _verbose(config) -> bool:

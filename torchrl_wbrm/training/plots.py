@@ -148,9 +148,12 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110, rect=None) -> Path:
     """Lay ``fig`` out (``tight_layout``, within ``rect`` when given), write it to ``path`` and close it: the end of
     every figure of the recipes and studies. Returns the path."""
+    from torchrl_wbrm.training.results import atomic_write
+
     fig.tight_layout(**({} if rect is None else {"rect": rect}))
     path = Path(path)
-    fig.savefig(path, dpi=dpi)
+    # written whole, never through a link planted under its name (format from the suffix, as savefig(path) does)
+    atomic_write(path, lambda f: fig.savefig(f, dpi=dpi, format=path.suffix.lstrip(".") or None))
     plt.close(fig)
     return path
 

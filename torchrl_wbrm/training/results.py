@@ -1,8 +1,11 @@
 """Writing a run's files: strict JSON, atomic replacement, and the kill tests' hook.
 
 * :func:`json_safe` — NaN and ±inf become ``null``, so ``results.json`` stays valid JSON.
-* :func:`atomic_write` — checkpoints and JSON files are written to a temporary file, fsynced and renamed over the
-  old one: a run killed at any point (SIGKILL included) leaves no half-written file.
+* :func:`atomic_write` — checkpoints and JSON files are written to a temporary file created fresh (a stale one, or a
+  symbolic link planted under its name, is unlinked first; then ``O_CREAT | O_EXCL | O_NOFOLLOW``), fsynced and
+  renamed over the old one: a run killed at any point (SIGKILL included) leaves no half-written file, and nothing is
+  ever written through a link.
+* :func:`create_fresh` — that fresh creation, for any file a run writes.
 * :func:`pause_for_test` — the point where a kill test stops a run (unset outside tests: nothing happens).
 """
 from __future__ import annotations
@@ -16,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["TEST_PAUSE_ENV", "atomic_write", "json_safe", "pause_for_test", "write_json"]
+__all__ = ["TEST_PAUSE_ENV", "atomic_write", "create_fresh", "json_safe", "pause_for_test", "write_json"]
 
 
 def json_safe(obj):
@@ -73,14 +76,34 @@ def _fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+#: ``os.open`` flags of a file created fresh: never an existing file, never through a symbolic link
+_FRESH = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+
+
+def create_fresh(path: str | os.PathLike, mode: str = "wb"):
+    """Open ``path`` for writing as a file created now: whatever is there under that name (a stale temporary file, a
+    symbolic link pointing elsewhere) is unlinked first, never followed, and the file is created with
+    ``O_CREAT | O_EXCL | O_NOFOLLOW``, so what is written lands in ``path``'s own folder and nowhere else. Returns
+    the open file object (``mode``: ``"wb"`` or ``"w"``)."""
+    path = Path(path)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    fd = os.open(path, _FRESH, 0o644)
+    return os.fdopen(fd, mode)
+
+
 def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
     """Replace ``path`` with what ``write(file)`` writes, atomically: the content goes to ``tmp`` (default
     ``<path>.tmp``, in the same directory), is flushed and fsynced, then renamed over ``path`` (``os.replace``) and
     the directory synced. A process killed at any point leaves either the old ``path`` or the new one complete, never
-    a half-written one (at most a stale temporary file, which the next write replaces)."""
+    a half-written one (at most a stale temporary file, which the next write replaces). The temporary file is created
+    fresh (:func:`create_fresh`): a link planted under its name is removed, not written through, and the rename
+    replaces a link at ``path`` itself, not its target."""
     path = Path(path)
     tmp = Path(tmp) if tmp is not None else path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with create_fresh(tmp) as f:
         write(f)
         f.flush()
         os.fsync(f.fileno())

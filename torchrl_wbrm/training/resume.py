@@ -5,18 +5,18 @@ a run's Hydra record names only the recipe's settings.
 from __future__ import annotations
 
 import functools
-from dataclasses import fields
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.training.checkpoint import read_checkpoint
-from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, config_schema
-from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir
+from torchrl_wbrm.training.config import config_as_dict, config_schema
+from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, holds_run, refuse_links
 
-__all__ = ["CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES", "changed_keys",
-           "check_finished_config", "check_resume_config", "check_run_record", "check_run_request", "is_continuable"]
+__all__ = ["CONFIG_GROUPS", "CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES",
+           "changed_keys", "check_finished_config", "check_resume_config", "check_run_record", "check_run_request",
+           "group_options", "is_continuable", "read_run_record"]
 
 
 #: Keys a resumed run may change: they do not change what has been trained (``q.steps`` only upwards).
@@ -36,21 +36,102 @@ CONTINUABLE_KEYS = (
 CONTINUABLE_PREFIXES = ("eval.", "logger.")
 
 
+#: The recipe's config groups: ``<group>=<option>`` picks one of the files shipped under ``configs/<group>/`` (for
+#: ``algo``, one of the registered algos). A run's record may name only those (:func:`group_options`).
+CONFIG_GROUPS = ("env", "algo", "logger")
+
+
+def group_options(group: str) -> tuple[str, ...]:
+    """The options of the recipe's config group ``group`` (:data:`CONFIG_GROUPS`): the YAML files shipped in
+    ``configs/<group>/``, or for ``algo`` the registered algos."""
+    if group == "algo":
+        from torchrl_wbrm.algos import ALGOS
+
+        return tuple(ALGOS)
+    from torchrl_wbrm.configs import CONFIG_DIR
+
+    return tuple(sorted(path.stem for path in (CONFIG_DIR / group).glob("*.yaml")))
+
+
+def _refuse_record(record: Path, override: str, why: str) -> ValueError:
+    return ValueError(
+        f"Cannot resume: {record} holds the override {override!r}, which {why}; a run's record holds only the "
+        f"recipe's own settings with values it offers (such as env=lqr_exp3 or q.lr=0.003), so nothing in it was "
+        f"applied."
+    )
+
+
 def check_run_record(record: Path, overrides: list[str]) -> None:
-    """Refuse a run's Hydra record (``.hydra/overrides.yaml``, re-applied by ``resume=``) holding an override that is
-    not a setting of the recipe's own config (:class:`~torchrl_wbrm.training.config.WBRMConfig`): a record Hydra wrote
-    holds only those (``env=lqr_exp3``, ``q.lr=0.003``; Hydra's own settings go to ``hydra.yaml``). Anything else,
-    such as a ``hydra.callbacks`` entry whose ``_target_`` Hydra would import and call, is refused before Hydra sees
-    it: a resume never runs what a file in the run directory names."""
-    settings = {f.name for f in fields(WBRMConfig)}
+    """Refuse a run's Hydra record (``.hydra/overrides.yaml``, re-applied by ``resume=``) holding anything but the
+    recipe's own settings with values the recipe offers: each entry must be ``key=value`` (``++key=value`` too) for a
+    setting of :class:`~torchrl_wbrm.training.config.WBRMConfig`, with a plain value (no sweep, no ``${...}``
+    interpolation), and a group override (``env=``, ``algo=``, ``logger=``) must name one of the group's shipped
+    options (:func:`group_options`), never a path: Hydra would load a YAML file a path names, honour its
+    ``# @package _global_`` and instantiate its ``hydra.callbacks``. Everything is refused before Hydra sees it: a
+    resume never runs nor loads what a file in the run directory names."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    schema = config_schema()
+    missing = object()
     for override in overrides:
-        key = override.split("=", 1)[0].lstrip("+~")
-        if "=" not in override or key.split(".", 1)[0].split("/", 1)[0] not in settings:
-            raise ValueError(
-                f"Cannot resume: {record} holds the override {override!r}, which is not a setting of this recipe "
-                f"(a run's record holds only its own settings, such as env=lqr_exp3 or q.lr=0.003); nothing in it was "
-                f"applied."
-            )
+        if not isinstance(override, str):
+            raise _refuse_record(record, override, "is not a 'key=value' string")
+        try:
+            (parsed,) = parser.parse_overrides([override])
+        except (HydraException, ValueError) as err:
+            raise _refuse_record(record, override, f"is not an override Hydra can read ({str(err).splitlines()[0]})") \
+                from None
+        key = parsed.key_or_group
+        group = key in CONFIG_GROUPS
+        if not group and ("/" in key or OmegaConf.select(schema, key, default=missing) is missing):
+            raise _refuse_record(record, override, "is not a setting of this recipe")
+        if parsed.type not in (OverrideType.CHANGE, OverrideType.FORCE_ADD):
+            raise _refuse_record(record, override, "adds or deletes a key instead of setting one")
+        if parsed.package is not None:
+            raise _refuse_record(record, override, "places a config at another package ('@')")
+        if parsed.is_sweep_override():
+            raise _refuse_record(record, override, "is a sweep, not one value")
+        value = parsed.value()
+        if group:
+            options = group_options(key)
+            if not isinstance(value, str) or value not in options:
+                raise _refuse_record(record, override, f"is not one of the {key} group's options "
+                                                       f"({', '.join(options)})")
+            continue
+        if "${" in str(value):
+            raise _refuse_record(record, override, "holds an interpolation ('${...}'), not a plain value")
+
+
+def read_run_record(record: Path) -> list[str]:
+    """The overrides of a run's Hydra record (``.hydra/overrides.yaml``), read as data (YAML's safe loader: a list
+    of strings) and checked (:func:`check_run_record`). A record that is not UTF-8, not YAML or not a list of
+    strings is a one-line ``ValueError`` naming the file."""
+    import yaml
+
+    record = Path(record)
+    try:
+        text = record.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"Cannot resume: {record} is not UTF-8 text (byte {err.start}), so it is not the run's "
+                         f"record of its overrides; nothing in it was applied.") from None
+    except OSError as err:
+        raise ValueError(f"Cannot resume: {record} cannot be read ({err.strerror}).") from None
+    try:
+        saved = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        where = getattr(err, "problem_mark", None)
+        at = f" at line {where.line + 1}" if where is not None else ""
+        raise ValueError(f"Cannot resume: {record} is not valid YAML{at}, so it is not the run's record of its "
+                         f"overrides; nothing in it was applied.") from None
+    saved = [] if saved is None else saved
+    if not isinstance(saved, list) or not all(isinstance(o, str) for o in saved):
+        raise ValueError(f"Cannot resume: {record} is not a list of overrides (strings such as 'q.lr=0.003'); nothing "
+                         f"in it was applied.")
+    check_run_record(record, saved)
+    return saved
 
 
 def _flatten(node, prefix: str = "") -> dict:
@@ -146,7 +227,8 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     """Everything that can refuse a run in ``run_dir`` before it starts, with nothing written: the directory is
     claimed (:func:`claim_run_dir`, unless ``claim`` is this run's already), then a resume's checkpoint is read and
     its config compared (:func:`check_resume_config`), or a new run's directory checked for an earlier run
-    (:func:`check_run_dir`, nothing removed yet). Returns the claim (released again if the run is refused) and the
+    (:func:`check_run_dir`, nothing removed yet); a directory where something the run writes into is a symbolic
+    link is refused (:func:`~torchrl_wbrm.training.rundir.refuse_links`). Returns the claim (released again if the run is refused) and the
     checkpoint read (``None`` for a new run)."""
     run_dir = Path(run_dir)
     path = run_dir / CHECKPOINT
@@ -155,6 +237,8 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     claim = claim or claim_run_dir(run_dir)
     sd = None
     try:
+        if resume or not (cfg.overwrite and holds_run(run_dir)):  # overwrite=true removes the earlier outputs
+            refuse_links(run_dir)
         if resume:
             sd = read_checkpoint(path)
             check_resume_config(path, dict(sd["config"]), config_as_dict(cfg, task), sd["state"])

@@ -3,13 +3,18 @@
 * :func:`claim_run_dir` — an exclusive advisory lock on the directory itself, held for the run (nothing is written
   for it; the kernel drops it when the process ends).
 * :func:`check_run_dir` — a new run refuses a directory holding a checkpoint or results unless ``overwrite=true``,
-  which removes every output of the earlier run (:func:`clear_run_outputs`).
+  which removes every output of the earlier run (:func:`clear_run_outputs`), and only those: the names a run of
+  this project writes (a multi-seed run's ``seed<s>/`` folders included), never the user's own files.
+* :func:`refuse_links` — a run never writes through a symbolic link: a folder it writes into (``logs/``, ``.hydra/``,
+  ``wandb/``, ``seed<s>/``) or a file it appends to that is a link is refused before anything is written.
 """
 from __future__ import annotations
 
 import errno
 import os
+import re
 import shutil
+import sys
 from pathlib import Path
 
 try:  # advisory locks (POSIX); without them a run directory is not locked
@@ -19,8 +24,9 @@ except ImportError:  # pragma: no cover - Windows
 
 from torchrl_wbrm.keys import CHECKPOINT
 
-__all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "RunDirClaim", "RunDirInUse", "check_run_dir", "claim_run_dir",
-           "clear_run_outputs", "hand_over", "holds_run", "remove_empty", "take_claim", "unique_dir"]
+__all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim", "RunDirInUse", "check_run_dir",
+           "claim_run_dir", "clear_run_outputs", "hand_over", "holds_run", "linked_outputs", "refuse_links",
+           "remove_empty", "take_claim", "unique_dir"]
 
 
 #: Files that mark a directory as holding a run.
@@ -33,8 +39,18 @@ RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", "results.json", "results.json.tmp",
                "training_curve.png", "evaluation.png", "logs", "wandb")
 
 
-#: Hydra's record of the command that made the run (``.hydra/``) and its job log (``<job name>.log``).
+#: Hydra's record of the command that made the run (``.hydra/``).
 HYDRA_RECORD = (".hydra",)
+
+
+#: A multi-seed run's folder of one seed (``seeds=[...]``: ``<run dir>/seed<s>``).
+SEED_DIR = re.compile(r"seed[0-9]+")
+
+
+#: What a run writes into (folders, and files it appends to): never a symbolic link (:func:`refuse_links`). The
+#: files a run replaces whole (``results.json``, ``checkpoint.pt``, ...) are renamed over their name, which replaces
+#: a link there, not its target; their temporaries are created fresh.
+WRITTEN_INTO = ("logs", "wandb", *HYDRA_RECORD)
 
 
 def holds_run(run_dir: Path) -> list[str]:
@@ -43,24 +59,90 @@ def holds_run(run_dir: Path) -> list[str]:
     return present if any(name in RUN_FILES for name in present) else []
 
 
-def clear_run_outputs(run_dir: Path, *, hydra_record: bool = False) -> list[str]:
-    """Remove the earlier run's outputs from ``run_dir`` (:data:`RUN_OUTPUTS`; with ``hydra_record`` also its
-    ``.hydra/`` record and Hydra job logs ``*.log``); other files are left alone. Returns what was removed."""
+def _seed_dirs(run_dir: Path) -> list[Path]:
+    """A multi-seed run's ``seed<s>/`` folders in ``run_dir`` (real folders, not links)."""
+    if not run_dir.is_dir():
+        return []
+    return sorted(p for p in run_dir.iterdir() if SEED_DIR.fullmatch(p.name) and p.is_dir() and not p.is_symlink())
+
+
+def _own_output(path: Path) -> bool:
+    """Whether ``path`` is not one of this process's own open standard streams (a command's redirected output,
+    ``> run/x.log``, is never removed by the command itself)."""
+    try:
+        st = os.stat(path, follow_symlinks=False)
+    except OSError:
+        return True
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            fd = stream.fileno()
+            other = os.fstat(fd)
+        except (AttributeError, OSError, ValueError):
+            continue
+        if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino):
+            return False
+    return True
+
+
+def clear_run_outputs(run_dir: Path, *, hydra_record: bool = False, job_name: str | None = None) -> list[str]:
+    """Remove the earlier run's outputs from ``run_dir``: :data:`RUN_OUTPUTS`, a multi-seed run's ``seed<s>/``
+    folders (their outputs, then the folder if nothing else is left in it), and with ``hydra_record`` its ``.hydra/``
+    record and Hydra's job log ``<job_name>.log`` (unless it is this command's own redirected output). Every other
+    file is left alone (a user's ``notes.log`` too); a link is removed, never followed. Returns what was removed."""
     run_dir = Path(run_dir)
     names = list(RUN_OUTPUTS)
     if hydra_record:
-        names += [*HYDRA_RECORD, *(p.name for p in run_dir.glob("*.log") if p.is_file())]
+        names += [*HYDRA_RECORD, *([f"{job_name}.log"] if job_name else [])]
     removed = []
     for name in names:
         path = run_dir / name
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
+        elif (path.exists() or path.is_symlink()) and _own_output(path):
             path.unlink()
         else:
             continue
         removed.append(name)
+    for seed_dir in _seed_dirs(run_dir):
+        inner = clear_run_outputs(seed_dir, hydra_record=hydra_record, job_name=job_name)
+        removed += [f"{seed_dir.name}/{name}" for name in inner]
+        remove_empty(seed_dir)
     return removed
+
+
+def linked_outputs(run_dir: Path) -> list[Path]:
+    """The symbolic links among what a run in ``run_dir`` writes into (:data:`WRITTEN_INTO`, in ``run_dir`` and in
+    each ``seed<s>/`` folder, searched without following links), and ``seed<s>`` folders that are links."""
+    run_dir = Path(run_dir)
+    found = []
+    roots = [run_dir]
+    if run_dir.is_dir():
+        for p in run_dir.iterdir():
+            if SEED_DIR.fullmatch(p.name):
+                if p.is_symlink():
+                    found.append(p)
+                elif p.is_dir():
+                    roots.append(p)
+    for root in roots:
+        for name in WRITTEN_INTO:
+            path = root / name
+            if path.is_symlink():
+                found.append(path)
+            elif path.is_dir():
+                for folder, dirs, files in os.walk(path):
+                    found += [Path(folder) / n for n in (*dirs, *files) if (Path(folder) / n).is_symlink()]
+    return found
+
+
+def refuse_links(run_dir: Path) -> None:
+    """Refuse, in one line naming it, a run directory where something the run writes into is a symbolic link
+    (:func:`linked_outputs`): a run writes in its own directory only, never through a link to elsewhere."""
+    links = linked_outputs(run_dir)
+    if links:
+        target = os.readlink(links[0])
+        raise ValueError(
+            f"{links[0]} is a symbolic link (to {target}): a run writes only into its own directory, never through a "
+            f"link. Remove the link{'s' if len(links) > 1 else ''} ({len(links)} found), or choose another directory.")
 
 
 def check_run_dir(run_dir: Path, *, overwrite: bool, remove: bool = True) -> None:
