@@ -11,6 +11,7 @@ from torchrl_wbrm.objectives.functional import (
     power_divergence_integrands,
     weighted_bellman_residual,
 )
+from torchrl_wbrm.objectives.fqe import FQELoss
 from torchrl_wbrm.objectives.mabo import ADVERSARIES, MABOLoss, linear_adversary_weight
 from torchrl_wbrm.objectives.robust_density_ratio import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss
@@ -18,6 +19,7 @@ from torchrl_wbrm.objectives.weighted_loss import NATIVE_PRIORITY_WEIGHT_LOSSES,
 
 __all__ = [
     "functional",
+    "FQELoss",
     "ADVERSARIES",
     "MABOLoss",
     "average_bellman_residual",
