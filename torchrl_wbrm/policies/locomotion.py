@@ -1,0 +1,250 @@
+"""Experts for gymnasium's MuJoCo locomotion tasks (``Hopper-v5``, ``HalfCheetah-v5``, ``Walker2d-v5``), trained
+here with TorchRL's own online pieces, and their committed weights.
+
+Unlike the hand-made controllers of :mod:`torchrl_wbrm.policies.gym_experts`, a locomotion expert is a trained
+network. One command trains it with soft actor-critic: a torchrl :class:`~torchrl.collectors.Collector` over a
+:class:`~torchrl.envs.GymEnv`, a :class:`~torchrl.data.ReplayBuffer` on a :class:`~torchrl.data.LazyTensorStorage`,
+:class:`~torchrl.objectives.SACLoss` and :class:`~torchrl.objectives.SoftUpdate`, seeded; every
+``--save-every`` frames it writes the deterministic actor (``tanh`` of the Gaussian's mean) with its measured
+return, so that an earlier checkpoint can serve as a *medium* policy::
+
+    python -m torchrl_wbrm.policies.locomotion --task hopper --seed 0 --frames 300000 --out experts_run
+
+The weights used by the datasets (:mod:`torchrl_wbrm.data.benchmark`) are committed in
+``torchrl_wbrm/policies/experts/<task>-<level>.pt``, each with a ``.json`` record (seed, budget, measured return
+and the bar a test holds it to). Loading never runs code: the file is read with ``torch.load(weights_only=True)``
+and must hold exactly the tensors of the actor's architecture.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+__all__ = [
+    "EXPERTS_DIR",
+    "LOCOMOTION_TASKS",
+    "LocomotionActor",
+    "load_locomotion_policy",
+    "locomotion_record",
+    "train_locomotion_expert",
+]
+
+#: the folder of the committed weights and their records
+EXPERTS_DIR = Path(__file__).resolve().parent / "experts"
+
+#: the tasks' short names and their gymnasium ids
+LOCOMOTION_TASKS = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5", "walker2d": "Walker2d-v5"}
+
+_HIDDEN = 256
+
+
+class LocomotionActor(nn.Module):
+    """The expert's deterministic actor: ``tanh(MLP(obs))`` in ``[−1, 1]`` (the three tasks' action box), the
+    mean of the SAC actor's squashed Gaussian. ``forward`` takes ``[..., obs_dim]`` float32 observations."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: int = _HIDDEN):
+        super().__init__()
+        self.obs_dim, self.action_dim, self.hidden = int(obs_dim), int(action_dim), int(hidden)
+        self.net = nn.Sequential(nn.Linear(obs_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, 2 * action_dim))
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(observation)[..., : self.action_dim])
+
+    @torch.no_grad()
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        """One action (or a batch) for NumPy observations, as float32 NumPy."""
+        obs = torch.as_tensor(np.asarray(observation, dtype=np.float32))
+        return self(obs).numpy()
+
+
+def _task_id(task: str) -> str:
+    if task not in LOCOMOTION_TASKS:
+        raise ValueError(f"locomotion task {task!r} is not one of {sorted(LOCOMOTION_TASKS)}.")
+    return LOCOMOTION_TASKS[task]
+
+
+def locomotion_record(task: str, level: str = "expert", directory: str | Path | None = None) -> dict:
+    """The ``.json`` record committed beside a policy's weights: its seed, training budget and measured return."""
+    _task_id(task)
+    path = Path(directory or EXPERTS_DIR) / f"{task}-{level}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no {level} policy record for {task!r}: {path} does not exist.")
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a JSON record ({exc}).") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: the record must be a JSON object, got {type(record).__name__}.")
+    return record
+
+
+def load_locomotion_policy(task: str, level: str = "expert", path: str | Path | None = None) -> LocomotionActor:
+    """The committed ``level`` policy (``"expert"`` or ``"medium"``) of ``task``, or the weights at ``path``.
+
+    The file is read with ``weights_only=True`` and must hold exactly the actor's tensors with their shapes; any
+    other content is refused in one line naming the file."""
+    import gymnasium as gym
+
+    env_id = _task_id(task)
+    path = Path(path) if path is not None else EXPERTS_DIR / f"{task}-{level}.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"no {level} policy for {task!r}: {path} does not exist.")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - unpickling errors come in many types; all mean "not our weights"
+        raise ValueError(f"{path}: not a policy's weights ({type(exc).__name__}: {str(exc).splitlines()[0]}).") \
+            from None
+    spaces = gym.spec(env_id)
+    env = gym.make(env_id)
+    obs_dim, action_dim = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
+    env.close()
+    del spaces
+    actor = LocomotionActor(obs_dim, action_dim)
+    expected = {k: tuple(v.shape) for k, v in actor.state_dict().items()}
+    if not isinstance(state, dict) or {k: tuple(getattr(v, "shape", ())) for k, v in state.items()} != expected:
+        raise ValueError(f"{path}: does not hold the {env_id} actor's tensors {expected}.")
+    if not all(torch.is_tensor(v) and v.dtype == torch.float32 and bool(torch.isfinite(v).all())
+               for v in state.values()):
+        raise ValueError(f"{path}: the actor's tensors must be finite float32.")
+    actor.load_state_dict(state)
+    actor.eval()
+    return actor
+
+
+def evaluate_policy(actor: LocomotionActor, env_id: str, episodes: int, seed: int) -> np.ndarray:
+    """The undiscounted returns of ``actor`` over ``episodes`` episodes of ``env_id``, all run at once in a
+    gymnasium vector env (one reset seed per episode, ``seed + i``)."""
+    import gymnasium as gym
+
+    envs = gym.vector.SyncVectorEnv([lambda: gym.make(env_id) for _ in range(episodes)],
+                                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    obs, _ = envs.reset(seed=[seed + i for i in range(episodes)])
+    returns = np.zeros(episodes)
+    alive = np.ones(episodes, dtype=bool)
+    while alive.any():
+        obs, reward, term, trunc, _ = envs.step(actor.act(obs))
+        returns += reward * alive
+        alive &= ~(term | trunc)
+    envs.close()
+    return returns
+
+
+@dataclass
+class _TrainConfig:
+    task: str
+    seed: int
+    frames: int
+    out: Path
+    init_random_frames: int = 10_000
+    frames_per_batch: int = 1_000
+    batch_size: int = 256
+    lr: float = 3e-4
+    gamma: float = 0.99
+    tau: float = 0.005
+    save_every: int = 25_000
+    eval_episodes: int = 10
+
+
+def train_locomotion_expert(cfg: _TrainConfig) -> dict:
+    """Train a SAC expert with torchrl's collector, buffer, loss and updater; returns the last evaluation."""
+    from tensordict.nn import NormalParamExtractor, TensorDictModule
+    from torchrl.collectors import Collector
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+    from torchrl.envs import Compose, DoubleToFloat, GymEnv, TransformedEnv
+    from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+    from torchrl.objectives import SACLoss, SoftUpdate
+
+    env_id = _task_id(cfg.task)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    env = TransformedEnv(GymEnv(env_id), Compose(DoubleToFloat()))
+    env.set_seed(cfg.seed)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    action_dim = env.action_spec.shape[-1]
+
+    deterministic = LocomotionActor(obs_dim, action_dim)
+    actor_module = TensorDictModule(nn.Sequential(deterministic.net, NormalParamExtractor()),
+                                    in_keys=["observation"], out_keys=["loc", "scale"])
+    actor = ProbabilisticActor(actor_module, in_keys=["loc", "scale"], spec=env.action_spec,
+                               distribution_class=TanhNormal, return_log_prob=False,
+                               distribution_kwargs={"low": env.action_spec.space.low,
+                                                    "high": env.action_spec.space.high})
+    qvalue = ValueOperator(MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=[_HIDDEN, _HIDDEN],
+                               activation_class=nn.ReLU), in_keys=["observation", "action"])
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=env.action_spec)
+    loss.make_value_estimator(gamma=cfg.gamma)
+    updater = SoftUpdate(loss, tau=cfg.tau)
+    optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+
+    collector = Collector(env, actor, frames_per_batch=cfg.frames_per_batch, total_frames=cfg.frames,
+                          init_random_frames=cfg.init_random_frames)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.frames), batch_size=cfg.batch_size)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    log = []
+    frames, next_save, start = 0, cfg.save_every, time.time()
+    for batch in collector:
+        buffer.extend(batch.reshape(-1))
+        frames += batch.numel()
+        if frames >= cfg.init_random_frames:
+            for _ in range(batch.numel()):
+                sample = buffer.sample()
+                losses = loss(sample)
+                total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
+                optim.zero_grad()
+                total.backward()
+                optim.step()
+                updater.step()
+        if frames >= next_save or frames >= cfg.frames:
+            next_save += cfg.save_every
+            returns = evaluate_policy(deterministic, env_id, cfg.eval_episodes, seed=10_000 + frames)
+            entry = {"frames": frames, "return_mean": float(returns.mean()), "return_std": float(returns.std()),
+                     "seconds": round(time.time() - start, 1)}
+            log.append(entry)
+            torch.save(deterministic.state_dict(), cfg.out / f"{cfg.task}-{frames:08d}.pt")
+            (cfg.out / f"{cfg.task}-log.json").write_text(json.dumps(log, indent=1), encoding="utf-8")
+            print(json.dumps(entry), flush=True)
+    collector.shutdown()
+    return log[-1]
+
+
+def _ci95(values: np.ndarray) -> float:
+    return float(1.96 * values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else float("nan")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Train a SAC expert for a MuJoCo locomotion task with torchrl, "
+                                                 "or measure a saved policy's return.")
+    parser.add_argument("--task", required=True, choices=sorted(LOCOMOTION_TASKS))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frames", type=int, default=300_000, help="environment steps (one update per step)")
+    parser.add_argument("--out", type=Path, default=Path("experts_run"),
+                        help="folder for the checkpoints and the training log")
+    parser.add_argument("--save-every", type=int, default=25_000)
+    parser.add_argument("--measure", type=Path, default=None,
+                        help="instead of training, measure the return of these weights over --episodes")
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (1: one core)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.measure is not None:
+        actor = load_locomotion_policy(args.task, path=args.measure)
+        returns = evaluate_policy(actor, LOCOMOTION_TASKS[args.task], args.episodes, seed=1_000_000)
+        print(json.dumps({"task": args.task, "weights": str(args.measure), "episodes": args.episodes,
+                          "return_mean": round(float(returns.mean()), 1), "return_ci95": round(_ci95(returns), 1),
+                          "return_min": round(float(returns.min()), 1)}))
+        return
+    train_locomotion_expert(_TrainConfig(task=args.task, seed=args.seed, frames=args.frames, out=args.out,
+                                         save_every=args.save_every))
+
+
+if __name__ == "__main__":
+    main()
