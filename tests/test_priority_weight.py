@@ -1,5 +1,5 @@
 """WeightedBellmanLoss follows TorchRL's per-sample weight convention (``"priority_weight"``,
-``use_prioritized_weights``), multiplying it with ŵ; ŵ stored as ``"priority_weight"`` weights the TorchRL losses that
+``use_prioritized_weights``, reduced as ``Σ pᵢ lᵢ / Σ pᵢ``), with ŵ inside each term ``lᵢ = ŵᵢ δᵢ²``; ŵ stored as ``"priority_weight"`` weights the TorchRL losses that
 read it natively (``DQNLoss`` here; which losses those are, and ``WeightedLoss`` for the others:
 tests/test_weighted_loss.py)."""
 from __future__ import annotations
@@ -51,13 +51,15 @@ def test_priority_weight_multiplies_the_ratio():
     both = _value(_loss(), batch)
     product = batch.exclude("priority_weight")
     product["density_ratio"] = batch["density_ratio"] * batch["priority_weight"].unsqueeze(-1)
-    torch.testing.assert_close(both, _value(_loss(), product), rtol=1e-6, atol=0)
+    p = batch["priority_weight"]
+    # TorchRL's rule: Σ pᵢ ŵᵢ δᵢ² / Σ pᵢ, i.e. the mean of (ŵ p) δ² rescaled by n / Σ p
+    torch.testing.assert_close(both, _value(_loss(), product) * N / p.sum(), rtol=1e-5, atol=0)
     ratio_only = _value(_loss(), batch.exclude("priority_weight"))
     assert not torch.allclose(both, ratio_only)
-    # by hand: mean_i ŵ_i p_i δ_i², with δ from the unweighted per-sample residual
+    # by hand, with δ from the unweighted per-sample residual
     per_sample = _loss(use_weights=False, use_prioritized_weights=False, reduction="none")(batch.clone())["loss_value"]
-    w = batch["density_ratio"].squeeze(-1) * batch["priority_weight"]
-    torch.testing.assert_close(both, (w * per_sample).mean(), rtol=1e-5, atol=0)
+    w = batch["density_ratio"].squeeze(-1)
+    torch.testing.assert_close(both, (p * w * per_sample).sum() / p.sum(), rtol=1e-5, atol=0)
 
 
 def test_use_prioritized_weights_false_ignores_it_and_auto_or_true_read_it():
@@ -78,7 +80,8 @@ def test_priority_weight_alone_without_the_ratio():
     alone = _value(_loss(use_weights=False), batch.exclude("density_ratio"))
     as_ratio = batch.exclude("priority_weight")
     as_ratio["density_ratio"] = batch["priority_weight"].unsqueeze(-1)
-    torch.testing.assert_close(alone, _value(_loss(), as_ratio), rtol=1e-6, atol=0)
+    torch.testing.assert_close(alone, _value(_loss(), as_ratio) * N / batch["priority_weight"].sum(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(alone, _value(_loss(weight_reduction="normalised"), as_ratio), rtol=1e-5, atol=0)
 
 
 def test_priority_weight_key_is_configurable_and_never_counted_twice():
@@ -109,7 +112,7 @@ def test_discrete_head_reads_the_priority_weight_too():
     both = loss(batch.clone())["loss_value"]
     product = batch.exclude("priority_weight")
     product["density_ratio"] = batch["density_ratio"] * batch["priority_weight"].unsqueeze(-1)
-    torch.testing.assert_close(both, loss(product)["loss_value"], rtol=1e-6, atol=0)
+    torch.testing.assert_close(both, loss(product)["loss_value"] * N / batch["priority_weight"].sum(), rtol=1e-5, atol=0)
 
 
 def test_ratio_stored_as_priority_weight_weights_torchrls_dqn_loss():

@@ -140,7 +140,7 @@ def test_the_bootstrap_reads_the_target_networks_not_the_online_ones(residual):
     out = loss(data)
     torch.testing.assert_close(out["loss_value"], expected)
     assert (expected - (w * _hand_td_error(data) ** 2).mean()).abs() > 0.1  # the online bootstrap gives another answer
-    # residual gradient (delay_value=False) has no target: the same data bootstrap from the online networks
+    # delay_value=False has no target: the same data bootstrap from the online networks (detached)
     online = _continuous_loss(residual=residual, delay_value=False, delay_actor=False)
     delta_online = _hand_td_error(data)
     expected_online = (w * delta_online**2).mean() if residual == "squared" else (w * delta_online).mean().abs()
@@ -222,7 +222,7 @@ def test_discrete_categorical_actions_match_one_hot():
 def test_residual_gradient_flows_through_both_q_terms():
     data = _continuous_data()
     w = data["density_ratio"].squeeze(-1)
-    residual_gradient = _continuous_loss(delay_value=False, delay_actor=True)
+    residual_gradient = _continuous_loss(delay_value=False, residual_gradient=True, delay_actor=True)
     SoftUpdate(residual_gradient, tau=0.1)
     assert "target_value_network_params" not in dict(residual_gradient.named_children())
     residual_gradient(data)["loss_value"].backward()
@@ -298,10 +298,11 @@ def test_default_keys_in_keys_and_out_keys():
     assert (keys.action, keys.weight, keys.priority) == ("action", "density_ratio", "td_error")
     assert (keys.reward, keys.done, keys.terminated) == ("reward", "done", "terminated")
     assert set(loss.in_keys) == {
-        "observation", "action", "density_ratio",
+        "observation", "action", "density_ratio", "priority_weight",
         ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"),
     }
     assert set(loss(_continuous_data()).keys()) == set(loss.out_keys)
+    assert "priority_weight" not in _continuous_loss(use_prioritized_weights=False).in_keys
 
 
 def test_set_keys_and_nested_keys():
@@ -535,12 +536,14 @@ def _chain_mdp(num_states=5, gamma=0.9):
 @pytest.mark.usefixtures("single_thread")
 @pytest.mark.parametrize("delay_value", [True, False])
 def test_learns_q_star_of_a_chain_mdp_with_a_qvalue_actor(delay_value):
-    """(a) DQN-style agent: torchrl QValueActor + WeightedBellmanLoss with arbitrary positive weights recovers Q*."""
+    """(a) DQN-style agent: torchrl QValueActor + WeightedBellmanLoss with arbitrary positive weights recovers Q*,
+    with a target network or by residual gradient."""
     torch.manual_seed(0)
     data, q_star = _chain_mdp()
     data["density_ratio"] = 0.5 + torch.rand(data.shape[0], 1) * 1.5
     value_net = QValueActor(nn.Linear(5, 2), in_keys=["observation"], spec=OneHot(2))  # tabular
-    loss = WeightedBellmanLoss(value_net, residual="squared", delay_value=delay_value)
+    loss = WeightedBellmanLoss(value_net, residual="squared", delay_value=delay_value,
+                               residual_gradient=not delay_value)
     loss.make_value_estimator(gamma=0.9)
     updater = SoftUpdate(loss, tau=0.05) if delay_value else None
     optimiser = torch.optim.Adam(loss.parameters(), lr=0.05)

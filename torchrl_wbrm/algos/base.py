@@ -345,6 +345,7 @@ def bellman_residual_algo(ctx: AlgoContext, *, weighted: bool) -> Algo:
         actor_network=actor,
         residual=qc.residual,
         delay_value=qc.bootstrap == "target",
+        residual_gradient=qc.bootstrap == "residual_gradient",
         use_weights=weighted,
         maximiser=qc.maximiser,
         action_spec=ctx.action_spec,
@@ -387,7 +388,8 @@ def discrete_bellman_residual_algo(ctx: AlgoContext, *, weighted: bool, num_acti
                              f"(Q over the {num_actions} actions, the policy greedy in Q): unset {key}.")
     head = make_discrete_q_network(ctx.observation_dim, num_actions, action_space="one-hot",
                                    **critic_options(ctx)).to(ctx.device)
-    loss = WeightedBellmanLoss(head, residual=qc.residual, delay_value=qc.bootstrap == "target", use_weights=weighted)
+    loss = WeightedBellmanLoss(head, residual=qc.residual, delay_value=qc.bootstrap == "target",
+                               residual_gradient=qc.bootstrap == "residual_gradient", use_weights=weighted)
     loss.make_value_estimator(gamma=ctx.gamma)
     updater = ForeachSoftUpdate(loss, tau=qc.target_tau) if qc.bootstrap == "target" else None
     optimisers = {"value": adam(loss.value_network_params.values(True, True), qc.lr)}

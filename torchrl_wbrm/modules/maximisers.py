@@ -94,6 +94,8 @@ class ActionMaximiser(nn.Module, abc.ABC):
     """Base class: :meth:`maximise` on tensors; called as a module on a TensorDict module and a TensorDict."""
 
     needs_actor: bool = False
+    #: Whether :meth:`maximise` draws random numbers (a loss using it then has ``vmap_randomness == "different"``).
+    draws_random: bool = False
 
     @abc.abstractmethod
     def maximise(
@@ -177,6 +179,8 @@ class SampledActionMaximiser(ActionMaximiser):
         >>> maximiser(q, TensorDict({"observation": torch.randn(4, 2)}, [4])).shape
         torch.Size([4])
     """
+
+    draws_random = True
 
     def __init__(self, action_spec: Bounded, *, num_samples: int = 64) -> None:
         super().__init__()

@@ -21,7 +21,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_wbrm.objectives._utils import get_entry
 
-__all__ = ["ForeachSoftUpdate", "NetworkCall"]
+__all__ = ["ForeachSoftUpdate", "NetworkCall", "named_tensors"]
 
 
 class NetworkCall:
@@ -108,6 +108,8 @@ class NetworkCall:
 
     def __call__(self, params, inputs, batch_size, *, detach: bool = False) -> torch.Tensor:
         if self.slots is None:
+            if isinstance(params, dict):  # dotted names -> tensors (named_tensors), e.g. one critic inside a vmap
+                params = TensorDict(params, batch_size=[]).unflatten_keys(".")
             td = TensorDict({key: inputs[key] for key in self.in_keys}, batch_size=batch_size)
             with (params.detach() if detach else params).to_module(self.network, preserve_module_state=False):
                 out = self.network(td)
@@ -115,10 +117,13 @@ class NetworkCall:
         saved = []
         slots = self.slots
         # a TensorDictParams' own two dicts walked in place (no generator per entry), any other TensorDict by _entries
-        stores = (params._parameters, params._buffers) if isinstance(params, TensorDictParams) else (_entries(params),)
+        if isinstance(params, TensorDictParams):
+            stores = (params._parameters, params._buffers)
+        else:
+            stores = (params if isinstance(params, dict) else dict(_entries(params)),)
         try:
             for store in stores:
-                for name, value in (store.items() if type(store) is dict else store):
+                for name, value in store.items():
                     container, attr = slots[name]
                     saved.append((container, attr, container[attr]))
                     container[attr] = value.detach() if detach and value is not None else value
@@ -126,6 +131,12 @@ class NetworkCall:
         finally:
             for container, attr, old in saved:
                 container[attr] = old
+
+
+def named_tensors(params) -> dict:
+    """``{dotted name: tensor}`` of a loss's parameters (a ``TensorDictParams`` or any TensorDict), the same tensors
+    (no copy, gradients flow): a plain pytree that ``torch.vmap`` maps over, and that :class:`NetworkCall` takes."""
+    return dict(_entries(params))
 
 
 def _entries(params):

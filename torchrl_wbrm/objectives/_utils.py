@@ -19,6 +19,16 @@ class NonFiniteError(ValueError):
         self.key = key
 
 
+def checks_run(enabled: bool) -> bool:
+    """Whether a loss's data-dependent input checks (finite values, signs, index ranges: each a host read) run now:
+    ``enabled`` (the loss's public ``check_inputs`` switch), and neither inside ``torch.compile`` (the read would
+    break the graph) nor inside a functorch transform (``torch.vmap``, ``torch.func.grad``: a batched tensor cannot
+    be read back). Shape, key and dtype checks need no host read and always run."""
+    if not enabled or torch.compiler.is_compiling():
+        return False
+    return torch._C._functorch.peek_interpreter_stack() is None
+
+
 def check_reduction(reduction: str | None) -> str:
     """``None`` means ``"mean"``; anything outside ``("mean", "sum", "none")`` is a ValueError."""
     if reduction is None:
@@ -116,15 +126,15 @@ def check_all_finite(entries: dict) -> None:
         check_finite(value, key)
 
 
-def as_bool_flag(value: torch.Tensor, key: NestedKey) -> torch.Tensor:
+def as_bool_flag(value: torch.Tensor, key: NestedKey, *, check: bool = True) -> torch.Tensor:
     """An episode-end flag as a bool tensor: bool as it is, any integer dtype holding only 0 and 1 converted
     (``~`` on an int64 1 is −2, on a uint8 0 is 255: torchrl's estimators need bools); a float flag or an integer
-    other than 0/1 is refused, naming ``key``."""
+    other than 0/1 is refused, naming ``key`` (that value check, a host read, runs where ``check``)."""
     if value.dtype == torch.bool:
         return value
     if value.is_floating_point() or value.is_complex():
         raise TypeError(f"Entry {key!r} is an episode-end flag of dtype {value.dtype}; pass bool (or integer 0/1).")
-    if value.device.type == "cpu" and value.numel() and not bool(((value == 0) | (value == 1)).all()):
+    if check and value.device.type == "cpu" and value.numel() and not bool(((value == 0) | (value == 1)).all()):
         raise ValueError(
             f"Entry {key!r} is an episode-end flag of dtype {value.dtype} with values other than 0 and 1 "
             f"(min {int(value.min())}, max {int(value.max())})."

@@ -125,6 +125,7 @@ def per_sample_weight(
     *,
     dtype: torch.dtype | None = None,
     check_weight: bool = True,
+    check_priority: bool = True,
     why: str = "the per-sample weight ŵ(x, a)",
 ) -> torch.Tensor | None:
     r"""The per-sample weight of a batch: ŵ times TorchRL's priority weight, shape ``[*B]``, detached.
@@ -137,7 +138,7 @@ def per_sample_weight(
     ``p_i`` from ``priority_key`` where the batch holds it (``None``: not read), each of shape ``[*B]`` or
     ``[*B, 1]``. Integer or bool entries are cast to ``dtype`` (default: torch's default dtype); complex ones are a
     TypeError. Each factor is checked finite and non-negative on CPU (:func:`~torchrl_wbrm.objectives._utils.
-    check_sign`); ``check_weight=False`` leaves ŵ's check to the caller. Returns ``None`` where neither factor
+    check_sign`); ``check_weight=False`` (``check_priority=False``) leaves ŵ's (``p_i``'s) check to the caller. Returns ``None`` where neither factor
     applies.
 
     Examples:
@@ -154,7 +155,7 @@ def per_sample_weight(
     if priority_key is not None and priority_key != weight_key:
         priority = fast_get(tensordict, priority_key)
         if priority is not None:
-            priority = _read_weight(tensordict, priority_key, priority, dtype, True)
+            priority = _read_weight(tensordict, priority_key, priority, dtype, check_priority)
             weight = priority if weight is None else weight * priority.to(weight.dtype)
     return weight
 

@@ -253,6 +253,7 @@ class MABOLoss(WeightedBellmanLoss):
             actor_network=actor_network,
             residual="absolute_mean",  # recorded only: value_loss below replaces the base class's
             delay_value=delay_value,
+            residual_gradient=not delay_value,  # the paper's form: the gradient through both Q terms
             delay_actor=delay_actor,
             use_weights=False,
             maximiser=maximiser,

@@ -22,7 +22,7 @@ from torchrl_wbrm.modules.maximisers import (
     GreedyDiscreteMaximiser,
     SampledActionMaximiser,
 )
-from torchrl_wbrm.objectives._fast import NetworkCall
+from torchrl_wbrm.objectives._fast import NetworkCall, named_tensors
 from torchrl_wbrm.objectives.functional import (
     RESIDUALS,
     bellman_residual,
@@ -30,7 +30,6 @@ from torchrl_wbrm.objectives.functional import (
     effective_sample_size,
     per_sample_weight,
     q_value_bound,
-    reduce_batch,
     td3bc_lambda,
     weighted_bellman_residual,
 )
@@ -43,18 +42,48 @@ from torchrl_wbrm.objectives._utils import (
     check_reduction,
     check_same_features,
     check_sign,
+    checks_run,
     fast_get,
     get_entry,
     input_width,
     per_sample,
 )
 
-__all__ = ["RESIDUALS", "WeightedBellmanLoss", "weighted_bellman_residual"]
+#: How ŵ enters the reduction (``weight_reduction``): ``"mean"``, the paper's ``(1/n) Σ ŵᵢ lᵢ``, or
+#: ``"normalised"``, the self-normalised ``Σ ŵᵢ lᵢ / Σ ŵᵢ`` of :class:`~torchrl_wbrm.objectives.WeightedLoss`.
+WEIGHT_REDUCTIONS = ("mean", "normalised")
+
+__all__ = ["RESIDUALS", "WEIGHT_REDUCTIONS", "WeightedBellmanLoss", "weighted_bellman_residual"]
 
 
 def _next(key: NestedKey) -> tuple:
     """``key`` under ``"next"``, flattened: ``("next", "a", "b")`` rather than ``("next", ("a", "b"))``."""
     return ("next", *key) if isinstance(key, tuple) else ("next", key)
+
+
+def _product(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
+    """``a · b``, or the one that is not ``None`` (``None`` if both are)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return a * b.to(a.dtype)
+
+
+def _masked_mean(value: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """The mean over the rows where ``mask`` holds (all rows without one); ``value`` may lead with K critics."""
+    if value.ndim > (mask.ndim if mask is not None else value.ndim):
+        value = value.mean(0)
+    if mask is None:
+        return value.mean()
+    return torch.where(mask, value, torch.zeros_like(value)).sum() / mask.sum().clamp_min(1)
+
+
+def _bounded_action_spec(action_spec, actor_network) -> Bounded | None:
+    """The Bounded action spec given, or the actor's (the ``"action"`` entry of a Composite); ``None`` if neither."""
+    if action_spec is None:
+        action_spec = getattr(actor_network, "spec", None)
+    if isinstance(action_spec, Composite):
+        action_spec = action_spec.get(WeightedBellmanLoss.default_keys.action, None)
+    return action_spec if isinstance(action_spec, Bounded) else None
 
 
 def _finite_and_non_negative(values: list[torch.Tensor], weight: torch.Tensor | None) -> bool:
@@ -96,10 +125,35 @@ class WeightedBellmanLoss(LossModule):
     - continuous actions with ``maximiser="sampled"``: the best of uniform samples in ``action_spec`` (plus μ(x')
       when an actor exists); no actor needed.
 
-    Bootstrapping: ``delay_value=True`` evaluates the max with a frozen copy of Q (target parameters, no gradient;
-    update them with :class:`~torchrl.objectives.SoftUpdate` / :class:`~torchrl.objectives.HardUpdate`).
-    ``delay_value=False`` is residual-gradient minimisation: the gradient flows through both ``Q(x, a)`` and
-    ``max Q(x', ·)``. Truncation (``done`` without ``terminated``) bootstraps; termination does not.
+    Bootstrapping, with TorchRL's meanings: ``delay_value=True`` evaluates the max with a frozen copy of Q (target
+    parameters, no gradient; update them with :class:`~torchrl.objectives.SoftUpdate` /
+    :class:`~torchrl.objectives.HardUpdate`); ``delay_value=False`` with the online parameters, detached
+    (semi-gradient, as ``DQNLoss(delay_value=False)``). ``residual_gradient=True`` (with ``delay_value=False``) is
+    residual-gradient minimisation: the gradient flows through both ``Q(x, a)`` and ``max Q(x', ·)``. Truncation
+    (``done`` without ``terminated``) bootstraps; termination does not.
+
+    Reduction, with TorchRL's rule (:meth:`~torchrl.objectives.LossModule._reduce_loss`): rows where a validity mask
+    (``("collector", "mask")`` or ``"shifted_valid"``, see ``loss_mask_key``) is False are dropped, and a
+    ``"priority_weight"`` p reduces as ``Σ pᵢ lᵢ / Σ pᵢ``. ŵ enters each term, ``lᵢ = ŵᵢ δᵢ²``, so that the loss is
+    the paper's ``(1/n) Σ ŵᵢ δᵢ²`` (``weight_reduction="mean"``, default): with ŵ normalised to mean 1 over the data
+    (:func:`~torchrl_wbrm.ratio.store_density_ratio`), this is an unbiased estimate of the expert-weighted
+    ``E_{π^e}[δ²]``, and its step size does not depend on the batch's own mean of ŵ.
+    ``weight_reduction="normalised"`` moves ŵ into the reduction's weights, ``Σ ŵᵢ pᵢ δᵢ² / Σ ŵᵢ pᵢ``, the
+    self-normalised estimate of :class:`~torchrl_wbrm.objectives.WeightedLoss` (its value on the same batch, tested):
+    biased for small batches, with each batch's step rescaled by 1/mean(ŵ).
+
+    Twin critics, as TD3: ``num_qvalue_nets=K`` keeps K critics (parameters stacked, TorchRL's
+    ``convert_to_functional(..., expand_dim=K)``), bootstraps on the minimum over the K target critics, sums the K
+    critics' terms, and trains the actor on the first critic. ``policy_noise=σ`` smooths the target action as TD3:
+    ``μ'(x') + clamp(σ ε, −noise_clip, noise_clip)``, clamped to the action box (TorchRL's ``TD3Loss`` critic target
+    on the same networks, tested).
+
+    vmap and compile: ``forward`` and the public loss methods make no host read where
+    ``torch.compiler.is_compiling()`` or a functorch transform (``torch.vmap``) is active; there the input checks of
+    values (finite, signs, action indices) and the Q-bound watch skip themselves, and ``check_inputs=False`` turns
+    the value checks off in eager use too. ``vmap_randomness`` is ``"different"`` where the loss draws random
+    numbers (``maximiser="sampled"``, ``policy_noise``). A dtype or device move (``.double()``, ``.to(device)``)
+    clears every cache (all are ``_cache``-named, dropped by TorchRL's ``_erase_cache``).
 
     γ is set with ``make_value_estimator(gamma=...)`` (:class:`~torchrl.objectives.value.TD0Estimator`, the only
     supported estimator). Without that call TorchRL's default ``gamma = 0.99`` applies (the paper's LQR uses 0.9).
@@ -118,15 +172,22 @@ class WeightedBellmanLoss(LossModule):
     Keyword Args:
         actor_network (TensorDictModule, optional): a deterministic actor μ writing ``"action"`` (continuous only).
         residual (str): ``"squared"`` (default) or ``"absolute_mean"`` (the paper's form).
-        delay_value (bool): frozen target Q (``True``, default) or residual gradient (``False``).
+        delay_value (bool): frozen target Q (``True``, default) or the online Q, detached (``False``).
         delay_actor (bool, optional): target copy of the actor for μ(x'). Defaults to ``delay_value``.
+        residual_gradient (bool): differentiate through ``max Q(x', ·)`` too (residual-gradient minimisation; needs
+            ``delay_value=False``). Defaults to ``False``.
+        num_qvalue_nets (int): the number K of critics (TD3's twin critics: 2). Defaults to ``1``.
+        policy_noise (float, optional): TD3's target policy smoothing σ for the actor maximiser. Defaults to ``None``
+            (none; TD3 uses 0.2).
+        noise_clip (float): TD3's clip of the smoothing noise. Defaults to ``0.5``.
         use_weights (bool): read ŵ from ``"density_ratio"`` (``True``, default; a missing entry is a KeyError) or
             use weight 1 for every sample (the unweighted baseline).
         use_prioritized_weights (bool or "auto"): TorchRL's convention (:class:`~torchrl.objectives.LossModule`):
             with ``"auto"`` (default) or ``True``, a ``"priority_weight"`` entry in the batch (a prioritized replay
             buffer's importance weights, or any per-sample weight stored there) multiplies each sample's term,
-            on top of ŵ when both are present; ``False`` ignores it. Unlike TorchRL's losses, which reduce a
-            weighted batch as ``Σ wᵢ lᵢ / Σ wᵢ``, the product stays inside this loss's own mean (``mean ŵᵢ pᵢ δᵢ²``).
+            reduced as TorchRL reduces it, ``Σ pᵢ lᵢ / Σ pᵢ`` (with ŵ: ``Σ pᵢ ŵᵢ δᵢ² / Σ pᵢ``); ``False`` ignores it.
+        weight_reduction (str): ``"mean"`` (default: the paper's ``(1/n) Σ ŵᵢ lᵢ``) or ``"normalised"``
+            (``Σ ŵᵢ lᵢ / Σ ŵᵢ``); see above.
         maximiser (str or ActionMaximiser, optional): ``"discrete"``, ``"actor"``, ``"sampled"`` or an instance.
             Defaults to ``"discrete"`` for a Q head, ``"actor"`` with an actor, ``"sampled"`` otherwise.
         action_spec (Bounded, optional): action box for ``"sampled"``; defaults to the actor's spec if it has one.
@@ -135,10 +196,13 @@ class WeightedBellmanLoss(LossModule):
         bc_alpha (float, optional): TD3+BC's α. If given, ``loss_actor = mean_i [−λ Q(x_i, μ(x_i)) +
             mean_j (μ(x_i)_j − a_ij)²]`` with ``λ = α / mean|Q(x, μ(x))|`` (detached), as TD3+BC (Fujimoto & Gu
             2021; α = 2.5 there). Defaults to ``None`` (no behaviour cloning).
+        check_inputs (bool): check the batch's values (finite entries, non-negative ŵ, action indices in range) in
+            eager use; each check is a host read. Defaults to ``True``; skipped under compile and vmap regardless.
         reward_bound (float, optional): max|r| over the data (e.g. ``data["next", "reward"].abs().max()``), for the
             divergence warning: Q past ``q_bound_margin · reward_bound / (1 − γ)`` (2 × by default) warns once and
             sets ``q_bound_exceeded``. Defaults to ``None``: the running max|r| over the batches seen, checked from
-            the ``q_bound_min_batches``-th batch (100) on.
+            the ``q_bound_min_batches``-th batch (100) on. The watch keeps its peaks on the device and reads them
+            every ``q_bound_check_every`` calls (100); ``watch_q_bound = False`` turns it off.
         reduction (str, optional): ``"mean"`` (default, also for ``None``), ``"sum"`` or ``"none"``. For
             ``"squared"``, ``"none"`` gives the per-sample ``ŵ_i δ_i²``. For ``"absolute_mean"`` it gives the signed
             per-sample ``ŵ_i δ_i`` *before* the absolute value (``|mean|`` of it is the ``"mean"`` loss), and
@@ -231,6 +295,10 @@ class WeightedBellmanLoss(LossModule):
     #: reward, is missing from most batches).
     q_bound_margin: float = 2.0
     q_bound_min_batches: int = 100
+    #: Calls between two reads of the Q-bound watch's device-side peaks (see :meth:`_watch_q_bound`).
+    q_bound_check_every: int = 100
+    #: The Q-bound watch on (``True``, default) or off.
+    watch_q_bound: bool = True
     q_bound_exceeded: bool = False
 
     value_network: TensorDictModule
@@ -248,7 +316,12 @@ class WeightedBellmanLoss(LossModule):
         residual: str = "squared",
         delay_value: bool = True,
         delay_actor: bool | None = None,
+        residual_gradient: bool = False,
+        num_qvalue_nets: int = 1,
+        policy_noise: float | None = None,
+        noise_clip: float = 0.5,
         use_weights: bool = True,
+        weight_reduction: str = "mean",
         use_prioritized_weights: str | bool = "auto",
         maximiser: str | ActionMaximiser | None = None,
         action_spec: TensorSpec | None = None,
@@ -256,9 +329,27 @@ class WeightedBellmanLoss(LossModule):
         weight_actor_loss: bool = False,
         bc_alpha: float | None = None,
         reward_bound: float | None = None,
+        check_inputs: bool = True,
         reduction: str | None = None,
     ) -> None:
         reduction = check_reduction(reduction)
+        if residual_gradient and delay_value:
+            raise ValueError("residual_gradient=True differentiates through max Q(x', ·) of the online Q; it needs "
+                             "delay_value=False (a frozen target has no gradient to give).")
+        if not (isinstance(num_qvalue_nets, int) and num_qvalue_nets >= 1):
+            raise ValueError(f"num_qvalue_nets must be an int >= 1, got {num_qvalue_nets!r}.")
+        if num_qvalue_nets > 1 and residual != "squared":
+            raise NotImplementedError(f"num_qvalue_nets={num_qvalue_nets} (twin critics) is implemented for "
+                                      f"residual='squared' only, got residual={residual!r}.")
+        if weight_reduction not in WEIGHT_REDUCTIONS:
+            raise ValueError(f"weight_reduction must be one of {WEIGHT_REDUCTIONS}, got {weight_reduction!r}.")
+        if policy_noise is not None:
+            if actor_network is None:
+                raise ValueError("policy_noise smooths the target actor's action μ'(x'); pass an actor_network.")
+            if not (math.isfinite(float(policy_noise)) and float(policy_noise) >= 0):
+                raise ValueError(f"policy_noise must be a finite number >= 0 or None, got {policy_noise!r}.")
+            if not (math.isfinite(float(noise_clip)) and float(noise_clip) >= 0):
+                raise ValueError(f"noise_clip must be a finite number >= 0, got {noise_clip!r}.")
         if reward_bound is not None and not (math.isfinite(float(reward_bound)) and float(reward_bound) > 0):
             raise ValueError(f"reward_bound must be a finite number > 0 (max|r| over the data) or None, got "
                              f"{reward_bound!r}.")
@@ -281,16 +372,31 @@ class WeightedBellmanLoss(LossModule):
         self.residual = residual
         self.delay_value = bool(delay_value)
         self.delay_actor = self.delay_value if delay_actor is None else bool(delay_actor)
+        self.residual_gradient = bool(residual_gradient)
+        self.num_qvalue_nets = int(num_qvalue_nets)
+        self.policy_noise = None if policy_noise is None else float(policy_noise)
+        self.noise_clip = float(noise_clip)
+        self.weight_reduction = weight_reduction
+        self.check_inputs = bool(check_inputs)
         self.use_weights = bool(use_weights)
         self.use_prioritized_weights = use_prioritized_weights
         self.weight_actor_loss = bool(weight_actor_loss)
         self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
         self.reduction = reduction
         self.reward_bound = None if reward_bound is None else float(reward_bound)
-        self.convert_to_functional(value_network, "value_network", create_target_params=self.delay_value)
+        self.convert_to_functional(value_network, "value_network",
+                                   expand_dim=self.num_qvalue_nets if self.num_qvalue_nets > 1 else None,
+                                   create_target_params=self.delay_value)
         self.has_actor = actor_network is not None
         if self.has_actor:
             self.convert_to_functional(actor_network, "actor_network", create_target_params=self.delay_actor)
+        if self.policy_noise is not None:
+            spec = _bounded_action_spec(action_spec, actor_network)
+            if spec is None:
+                raise ValueError("policy_noise clamps μ'(x') + noise to the action box: pass a Bounded action_spec "
+                                 "(or an actor whose spec is Bounded).")
+            self.register_buffer("min_action", spec.space.low.clone())
+            self.register_buffer("max_action", spec.space.high.clone())
 
     @staticmethod
     def _make_maximiser(maximiser, discrete, actor_network, action_spec, num_action_samples) -> ActionMaximiser:
@@ -309,16 +415,13 @@ class WeightedBellmanLoss(LossModule):
                 raise ValueError("maximiser='actor' needs an actor_network.")
             return ActorMaximiser()
         if maximiser == "sampled":
-            if action_spec is None:
-                action_spec = getattr(actor_network, "spec", None)
-            if isinstance(action_spec, Composite):
-                action_spec = action_spec.get(WeightedBellmanLoss.default_keys.action, None)
-            if not isinstance(action_spec, Bounded):
+            spec = _bounded_action_spec(action_spec, actor_network)
+            if spec is None:
                 raise ValueError(
                     "maximiser='sampled' needs a Bounded action_spec (or an actor whose spec is Bounded), "
-                    f"got {type(action_spec).__name__}."
+                    f"got {type(action_spec if action_spec is not None else getattr(actor_network, 'spec', None)).__name__}."
                 )
-            return SampledActionMaximiser(action_spec, num_samples=num_action_samples)
+            return SampledActionMaximiser(spec, num_samples=num_action_samples)
         raise ValueError(
             f"maximiser must be 'discrete', 'actor', 'sampled' or an ActionMaximiser, got {maximiser!r}."
         )
@@ -401,6 +504,9 @@ class WeightedBellmanLoss(LossModule):
                 keys += [*self.actor_network.in_keys, *[_next(key) for key in self.actor_network.in_keys]]
             if self.use_weights:
                 keys.append(self.tensor_keys.weight)
+            priority_key = getattr(self.tensor_keys, "priority_weight", None)  # (a subclass's keys may have none)
+            if priority_key is not None and self.use_prioritized_weights in (True, "auto"):
+                keys.append(priority_key)
             self._in_keys = list(dict.fromkeys(keys))
         return self._in_keys
 
@@ -425,22 +531,32 @@ class WeightedBellmanLoss(LossModule):
     def out_keys(self, values):
         self._out_keys = values
 
+    @property
+    def vmap_randomness(self) -> str:
+        """TorchRL's :attr:`~torchrl.objectives.LossModule.vmap_randomness`, ``"different"`` where this loss draws
+        random numbers itself: a maximiser that samples (``maximiser="sampled"``) or target policy smoothing
+        (``policy_noise``); otherwise TorchRL's detection of random modules in the networks."""
+        if self._vmap_randomness is None and (getattr(self.maximiser, "draws_random", False)
+                                              or self.policy_noise is not None):
+            self._vmap_randomness = "different"
+        return LossModule.vmap_randomness.fget(self)
+
     # ---------------------------------------------------------------- pieces
     def _network_facts(self) -> tuple[int | None, torch.dtype | None]:
         """``(input width, parameter dtype)`` of the value network (cached per network): what the batch's inputs must
         add up to and be cast to."""
-        cache = self.__dict__.get("_facts_cache")
+        cache = self.__dict__.get("_cache_facts")
         if cache is None or cache[0] is not self.value_network:
             floats = [p for p in self.value_network_params.values(True, True) if p.is_floating_point()]
             cache = (self.value_network, input_width(self.value_network), floats[0].dtype if floats else None)
-            self.__dict__["_facts_cache"] = cache
+            self.__dict__["_cache_facts"] = cache
         return cache[1], cache[2]
 
     def _network_call(self, name: str) -> NetworkCall:
         """The :class:`~torchrl_wbrm.objectives._fast.NetworkCall` of ``"value_network"``, ``"actor_network"`` (or a
         subclass's ``"critic_network"``), cached per network and :attr:`fast_path`."""
         network = getattr(self, name)
-        cache = self.__dict__.setdefault("_network_calls", {})
+        cache = self.__dict__.setdefault("_cache_network_calls", {})
         entry = cache.get(name)
         if entry is None or entry[0] is not network or entry[1] != self.fast_path:
             call = NetworkCall(network, getattr(self, f"{name}_params"), self._out_key(name),
@@ -456,8 +572,21 @@ class WeightedBellmanLoss(LossModule):
 
     def _call(self, name: str, params, inputs, batch_size, *, detach: bool = False) -> torch.Tensor:
         """How every method calls a network: network ``name`` with ``params`` on the tensors ``inputs`` (its
-        in_keys -> tensors of leading shape ``batch_size``); ``detach``: no gradient to the parameters."""
-        return self._network_call(name)(params, inputs, batch_size, detach=detach)
+        in_keys -> tensors of leading shape ``batch_size``); ``detach``: no gradient to the parameters.
+
+        The value network with ``num_qvalue_nets`` K > 1 critics (parameters stacked along a first dimension, as
+        TorchRL's ``convert_to_functional(..., expand_dim=K)``): each critic evaluated by one ``torch.vmap`` over the
+        stacked parameters, the output of shape ``[K, *batch_size, ...]``."""
+        call = self._network_call(name)
+        if name != "value_network" or self.num_qvalue_nets == 1:
+            return call(params, inputs, batch_size, detach=detach)
+        return torch.vmap(lambda p: call(p, inputs, batch_size, detach=detach),
+                          randomness=self.vmap_randomness)(named_tensors(params))
+
+    def _min_q(self, params, inputs, batch_size) -> torch.Tensor:
+        """Q on ``inputs``; with K > 1 critics, the minimum over them (TD3's clipped double-Q)."""
+        output = self._call("value_network", params, inputs, batch_size)
+        return output if self.num_qvalue_nets == 1 else output.amin(0)
 
     def _entries(self, tensordict: TensorDictBase, keys, why: str) -> dict:
         """``{key: tensordict[key]}`` for ``keys`` (a KeyError naming a missing key and ``why``)."""
@@ -485,44 +614,68 @@ class WeightedBellmanLoss(LossModule):
         ``"priority_weight"`` entry where TorchRL's convention reads it, or ones when neither applies.
 
         ``check=False`` leaves ŵ's sign check to the caller (:meth:`bellman_error` with ``weight_to_check``)."""
-        priority_key = self.tensor_keys.priority_weight
-        reads_priority = self.use_prioritized_weights in (True, "auto") and not (
-            self.use_weights and priority_key == self.tensor_keys.weight)
-        weight = per_sample_weight(
-            tensordict,
-            self.tensor_keys.weight if self.use_weights else None,
-            priority_key if reads_priority else None,
-            dtype=self._network_facts()[1],
-            check_weight=check,
-            why="the per-sample weight ŵ(x, a): write the ratio network's output there, or build the loss with "
-                "use_weights=False",
-        )
+        weight = _product(self._density_ratio(tensordict, check=check), self._priority_weight(tensordict))
         if weight is None:
             reward = get_entry(tensordict, _next(self.tensor_keys.reward), "the reward")
             return torch.ones(tensordict.batch_size, device=reward.device, dtype=reward.dtype)
         return weight
 
+    def _density_ratio(self, tensordict: TensorDictBase, check: bool = True) -> torch.Tensor | None:
+        """ŵ, shape ``[*B]``, detached (``None`` with ``use_weights=False``); checked finite and non-negative where
+        ``check`` and :func:`~torchrl_wbrm.objectives._utils.checks_run`."""
+        if not self.use_weights:
+            return None
+        return per_sample_weight(
+            tensordict, self.tensor_keys.weight, dtype=self._network_facts()[1],
+            check_weight=check and checks_run(self.check_inputs),
+            why="the per-sample weight ŵ(x, a): write the ratio network's output there, or build the loss with "
+                "use_weights=False",
+        )
+
+    def _priority_weight(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """TorchRL's ``"priority_weight"`` p, shape ``[*B]``, where ``use_prioritized_weights`` reads it and the batch
+        holds it (``None`` otherwise)."""
+        if not self._reads_priority(tensordict):
+            return None
+        return per_sample_weight(tensordict, None, self.tensor_keys.priority_weight, dtype=self._network_facts()[1],
+                                 check_priority=checks_run(self.check_inputs))
+
+    def _validity_mask(self, tensordict: TensorDictBase, like: torch.Tensor) -> torch.Tensor | None:
+        """TorchRL's validity mask of the batch (``("collector", "mask")`` and ``"shifted_valid"``, per
+        ``loss_mask_key``; the rule of :meth:`~torchrl.objectives.LossModule._reduce_loss`), of ``like``'s shape, or
+        ``None`` where the batch holds none."""
+        mask = None
+        for key in self._loss_mask_keys():
+            value = fast_get(tensordict, key)
+            if value is not None:
+                value = self._expand_loss_mask(value, like)
+                mask = value if mask is None else mask & value
+        return mask
+
     def _chosen_q(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """Q(x, a) at the data's actions, shape ``[*B]``, with the online parameters (differentiable)."""
+        """Q(x, a) at the data's actions, shape ``[*B]`` (``[K, *B]`` with K > 1 critics), with the online
+        parameters (differentiable)."""
         batch = tensordict.batch_size
         keys = self._observation_keys if self.discrete else self.value_network.in_keys
         output = self._call("value_network", self.value_network_params,
                             self._entries(tensordict, keys, "an input of the value network"), batch)
+        critics = () if self.num_qvalue_nets == 1 else (self.num_qvalue_nets,)
         if not self.discrete:
-            return per_sample(output, batch, self.tensor_keys.state_action_value)
+            return per_sample(output, torch.Size([*critics, *batch]), self.tensor_keys.state_action_value)
         action = get_entry(tensordict, self.tensor_keys.action, "the action taken in the data")
         num_actions = output.shape[-1]
         if action.shape == (*batch, num_actions):  # one-hot
             return (output * action.to(output.dtype)).sum(-1)
         if action.shape in (batch, (*batch, 1)) and not action.is_floating_point():  # indices
-            if action.device.type == "cpu" and action.numel():
+            if checks_run(self.check_inputs) and action.device.type == "cpu" and action.numel():
                 low, high = (int(v) for v in torch.aminmax(action.long()))
                 if low < 0 or high >= num_actions:
                     raise ValueError(
                         f"Entry {self.tensor_keys.action!r} holds action indices from {low} to {high}; the Q head has "
                         f"{num_actions} actions, so indices must lie in [0, {num_actions - 1}]."
                     )
-            return output.gather(-1, action.reshape(*batch, 1).long()).squeeze(-1)
+            index = action.reshape(*batch, 1).long().expand(*output.shape[:-1], 1)
+            return output.gather(-1, index).squeeze(-1)
         raise ValueError(
             f"Entry {self.tensor_keys.action!r} has shape {tuple(action.shape)} and dtype {action.dtype}; a Q head "
             f"over {num_actions} actions expects one-hot actions {(*batch, num_actions)} or integer indices "
@@ -535,7 +688,10 @@ class WeightedBellmanLoss(LossModule):
         return self._call("actor_network", params, inputs, tensordict.batch_size)
 
     def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """``max_{a'} Q(x', a')``, shape ``[*B]``: target Q under no_grad (``delay_value``) or online Q with grad.
+        """``max_{a'} Q(x', a')``, shape ``[*B]``: with the target parameters (``delay_value``) or the online ones,
+        under no_grad (semi-gradient, TorchRL's meaning of both) or, with ``residual_gradient``, with the gradient.
+        With K > 1 critics, Q is the minimum over them; with ``policy_noise``, the actor's μ'(x') is smoothed as TD3
+        does: ``clamp(μ'(x') + clamp(σ ε, −c, c), low, high)``, ``ε ~ N(0, I)``.
 
         The maximiser's :meth:`~torchrl_wbrm.modules.maximisers.ActionMaximiser.maximise` computes it, with Q
         called through :meth:`_call`."""
@@ -546,12 +702,16 @@ class WeightedBellmanLoss(LossModule):
         if self.has_actor:
             with torch.no_grad():  # the value loss never trains the actor
                 actor_action = self._actor_action(next_td, self.target_actor_network_params)
+                if self.policy_noise is not None:  # TD3's target policy smoothing
+                    noise = (torch.randn_like(actor_action) * self.policy_noise).clamp(-self.noise_clip,
+                                                                                        self.noise_clip)
+                    actor_action = (actor_action + noise).clamp(self.min_action, self.max_action)
         params = self.target_value_network_params if self.delay_value else self.value_network_params
 
         def q(inputs, batch_shape):
-            return self._call("value_network", params, inputs, batch_shape)
+            return self._min_q(params, inputs, batch_shape)
 
-        with torch.no_grad() if self.delay_value else nullcontext():
+        with nullcontext() if self.residual_gradient else torch.no_grad():
             return self.maximiser.maximise(q, observations, batch, action_key=self.tensor_keys.action,
                                            actor_action=actor_action)
 
@@ -559,6 +719,9 @@ class WeightedBellmanLoss(LossModule):
     def _checked_inputs(self, tensordict: TensorDictBase, weight_to_check: torch.Tensor | None = None) -> TensorDictBase:
         """Check a batch against the documented shapes before any network sees it; return it with bool flags.
 
+        The checks of values (finite, signs, 0/1 flags; host reads) run where
+        :func:`~torchrl_wbrm.objectives._utils.checks_run` says so: with ``check_inputs`` (default), outside
+        ``torch.compile`` and functorch transforms; the checks of keys, shapes and dtypes always run.
         A ValueError names the key and both shapes for a reward or flag that is not one value per sample, or an
         observation whose next-state counterpart has another shape, and every input key with its width when the
         widths do not add up to the value network's input features; an empty batch and NaN/inf in the reward,
@@ -574,6 +737,7 @@ class WeightedBellmanLoss(LossModule):
         """
         batch = tensordict.batch_size
         check_not_empty(batch, "Bellman-residual")
+        run = checks_run(self.check_inputs)
         flags = {}
         checks: list[tuple[torch.Tensor, NestedKey]] = []
         reward_shape = None
@@ -585,7 +749,7 @@ class WeightedBellmanLoss(LossModule):
                 reward_shape = fast_get(tensordict, _next(key)).shape
             else:
                 raw = fast_get(tensordict, _next(key))
-                flag = as_bool_flag(raw, _next(key))
+                flag = as_bool_flag(raw, _next(key), check=run)
                 if flag.shape != reward_shape:  # [B] and [B, 1] mixed: one value per sample either way
                     flag = flag.reshape(reward_shape)
                 if flag is not raw:
@@ -605,7 +769,7 @@ class WeightedBellmanLoss(LossModule):
             inputs[self.tensor_keys.action] = action
         check_input_dtype(dtype, {**inputs, **next_inputs}, "value network")
         check_input_width(width, inputs, batch, "value network")
-        if not _finite_and_non_negative([v for v, _ in checks], weight_to_check):
+        if run and not _finite_and_non_negative([v for v, _ in checks], weight_to_check):
             if weight_to_check is not None:
                 check_sign(weight_to_check, self.tensor_keys.weight, strictly_positive=False)
             for value, key in checks:
@@ -639,84 +803,104 @@ class WeightedBellmanLoss(LossModule):
 
         The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
         """
-        weight = self._weight(tensordict, check=False)
-        q_value, target_value = self.bellman_error(tensordict, weight if self.use_weights else None)
-        if self.use_weights and weight.device.type == "cpu" and not bool(weight.any()):
-            raise ValueError(
-                f"Every weight of the batch is 0 (entry {self.tensor_keys.weight!r}"
-                f"{', times ' + repr(self.tensor_keys.priority_weight) if self._reads_priority(tensordict) else ''}): "
-                "the weighted residual would be 0 and its effective sample size undefined. Check the stored weights "
-                "(a collapsed density ratio?) or sample larger batches."
-            )
+        run = checks_run(self.check_inputs)
+        density_ratio = self._density_ratio(tensordict, check=False)
+        priority = self._priority_weight(tensordict)
+        q_value, target_value = self.bellman_error(tensordict, density_ratio if run else None)
+        if run and density_ratio is not None and density_ratio.device.type == "cpu":
+            if not bool(_product(density_ratio, priority).any()):
+                raise ValueError(
+                    f"Every weight of the batch is 0 (entry {self.tensor_keys.weight!r}"
+                    f"{', times ' + repr(self.tensor_keys.priority_weight) if priority is not None else ''}): "
+                    "the weighted residual would be 0 and its effective sample size undefined. Check the stored "
+                    "weights (a collapsed density ratio?) or sample larger batches."
+                )
         self._watch_q_bound(q_value, tensordict)
-        loss = weighted_bellman_residual(
+        # ŵ inside the per-sample term (the paper's mean) or in the reduction's weights (self-normalised); TorchRL's
+        # priority weight always in the reduction's weights, Σ pᵢ lᵢ / Σ pᵢ
+        weight, reduce_weight = density_ratio, priority
+        if self.weight_reduction == "normalised":
+            weight, reduce_weight = None, _product(density_ratio, priority)
+        if weight is None:
+            weight = torch.ones_like(target_value)
+        per_sample_loss = weighted_bellman_residual(
             q_value,
             target_value,
             weight,
             residual=self.residual,
-            reduction=self.reduction,
+            reduction="none",
         )
+        if self.num_qvalue_nets > 1:  # TD3: the critics' terms summed
+            per_sample_loss = per_sample_loss.sum(0)
+        loss = self._reduce_loss(per_sample_loss, tensordict, weights=reduce_weight)
+        if self.residual == "absolute_mean" and self.reduction != "none":
+            loss = loss.abs()
         with torch.no_grad():
             td_error = bellman_residual(q_value, target_value)
+            mask = self._validity_mask(tensordict, target_value)
+            squared = td_error.pow(2)
             diagnostics = {
-                "td_error": td_error.pow(2),
-                "td_error_mean": td_error.mean(),
-                "td_error_abs_mean": td_error.abs().mean(),
-                "q_mean": q_value.mean(),
-                "target_value_mean": target_value.mean(),
+                "td_error": squared if self.num_qvalue_nets == 1 else squared.amax(0),
+                "td_error_mean": _masked_mean(td_error, mask),
+                "td_error_abs_mean": _masked_mean(td_error.abs(), mask),
+                "q_mean": _masked_mean(q_value, mask),
+                "target_value_mean": _masked_mean(target_value, mask),
             }
             if self.use_weights:
-                diagnostics["weight_mean"] = weight.mean()
-                diagnostics["weight_ess"] = effective_sample_size(weight)
+                weights = _product(density_ratio, priority)
+                if mask is not None:
+                    weights = torch.where(mask, weights, torch.zeros_like(weights))
+                diagnostics["weight_mean"] = _masked_mean(weights, mask)
+                diagnostics["weight_ess"] = effective_sample_size(weights)
         return loss, diagnostics
 
     def _reads_priority(self, tensordict: TensorDictBase) -> bool:
-        key = self.tensor_keys.priority_weight
+        """Whether the batch's ``"priority_weight"`` is read (TorchRL's ``use_prioritized_weights`` convention; never
+        when it is the ŵ entry itself)."""
+        key = getattr(self.tensor_keys, "priority_weight", None)
+        if key is None:
+            return False
         return (self.use_prioritized_weights in (True, "auto") and not (self.use_weights and key == self.tensor_keys.weight)
                 and fast_get(tensordict, key) is not None)
 
     @torch.no_grad()
     def _watch_q_bound(self, q_value: torch.Tensor, tensordict: TensorDictBase) -> None:
         """Warn once when ``max |Q(x, a)|`` passes ``q_bound_margin · max|r| / (1 − γ)``: no discounted return of
-        these rewards is that large. max|r| is :attr:`reward_bound`, or the running max over every batch seen (kept
-        on the device, no host sync), and then no warning before ``q_bound_min_batches`` batches. Checked on every
-        call for CPU tensors and every 100th call elsewhere (a check reads two numbers back from the device)."""
-        if self.q_bound_exceeded:
+        these rewards is that large. max|r| is :attr:`reward_bound`, or the running max over every batch seen, and
+        then no warning before ``q_bound_min_batches`` batches.
+
+        The peaks of ``|Q|`` (since the last read) and of ``|r|`` are kept as tensors on the batch's device (no host
+        read); they are read back on the first call that may warn (the first batch with ``reward_bound``, the
+        ``q_bound_min_batches``-th without) and then every ``q_bound_check_every`` calls, so a peak between two
+        reads is reported at the next one. Off with ``watch_q_bound = False``, and skipped inside ``torch.compile``
+        and functorch transforms (``torch.vmap``), where nothing can be read back (the state lives in a
+        ``_cache``-named attribute, dropped by a dtype or device move)."""
+        if not self.watch_q_bound or self.q_bound_exceeded or not checks_run(True):
             return
-        calls = self.__dict__.get("_q_bound_calls", 0) + 1
-        self.__dict__["_q_bound_calls"] = calls
-        bound_given = getattr(self, "reward_bound", None)
-        on_host = q_value.device.type == "cpu"
-        if bound_given is None:
-            reward = fast_get(tensordict, _next(self.tensor_keys.reward))
-            peak = reward.detach().abs().amax()
-            seen = self.__dict__.get("_max_abs_reward")
-            if on_host and reward.device.type == "cpu" and not isinstance(seen, torch.Tensor):
-                # a host float: one read per batch, no device to wait for (the rewards were checked finite)
-                peak = peak.item()
-                self.__dict__["_max_abs_reward"] = peak if seen is None else max(seen, peak)
-            else:  # kept on the device, read with Q's max every 100th call
-                peak = peak.to(torch.float64)
-                seen = peak if seen is None else torch.maximum(torch.as_tensor(seen, dtype=torch.float64,
-                                                                               device=peak.device), peak)
-                self.__dict__["_max_abs_reward"] = seen
-            if calls < self.q_bound_min_batches:
-                return
-        if not on_host and calls % 100:
+        q_peak = q_value.detach().abs().amax().to(torch.float64)
+        r_peak = fast_get(tensordict, _next(self.tensor_keys.reward)).detach().abs().amax().to(torch.float64)
+        state = self.__dict__.get("_cache_q_watch")
+        if state is not None:
+            calls, q_seen, r_seen = state
+            q_peak = q_peak if q_seen is None else torch.maximum(q_seen.to(q_peak.device), q_peak)
+            r_peak = torch.maximum(r_seen.to(r_peak.device), r_peak)
+        else:
+            calls = 0
+        calls += 1
+        self.__dict__["_cache_q_watch"] = (calls, q_peak, r_peak)
+        bound_given = self.reward_bound
+        first = 1 if bound_given is not None else max(1, int(self.q_bound_min_batches))
+        if calls < first or (calls - first) % max(1, int(self.q_bound_check_every)):
             return
+        self.__dict__["_cache_q_watch"] = (calls, None, r_peak)  # |Q|'s peak since the last read
         gamma = self._gamma_value()
         if not gamma < 1.0:
             return
+        q_max, r_max = torch.stack([q_peak, r_peak.to(q_peak.device)]).tolist()
         if bound_given is None:
-            r_max = self.__dict__["_max_abs_reward"]
-            if isinstance(r_max, torch.Tensor):
-                q_max, r_max = torch.stack([q_value.abs().amax().to(torch.float64), r_max.to(q_value.device)]).tolist()
-            else:
-                q_max = q_value.abs().amax().item()
             source = f"over the {calls} batches seen"
         else:
-            q_max, r_max = float(q_value.abs().amax()), float(bound_given)
-            source = "the reward_bound given"
+            r_max, source = float(bound_given), "the reward_bound given"
         bound = q_value_bound(r_max, gamma, self.q_bound_margin)
         if r_max > 0 and q_max > bound:
             self.q_bound_exceeded = True
@@ -735,10 +919,10 @@ class WeightedBellmanLoss(LossModule):
         """γ as a float, read from the value estimator once per γ tensor and version (read anew after
         ``make_value_estimator``, the move to the batch's device in :meth:`_target` or an in-place change)."""
         gamma = self.value_estimator.gamma
-        cached = self.__dict__.get("_gamma_float")
+        cached = self.__dict__.get("_cache_gamma_float")
         version = getattr(gamma, "_version", None)
         if cached is None or cached[0] is not gamma or cached[1] != version:
-            cached = self.__dict__["_gamma_float"] = (gamma, version, float(gamma))
+            cached = self.__dict__["_cache_gamma_float"] = (gamma, version, float(gamma))
         return cached[2]
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -753,8 +937,8 @@ class WeightedBellmanLoss(LossModule):
         mu = self._actor_action(tensordict, self.actor_network_params)
         q_inputs = self._entries(tensordict, self._observation_keys, "an input of the value network")
         q_inputs[self.tensor_keys.action] = mu
-        q_actor = per_sample(self._call("value_network", self.value_network_params, q_inputs, batch, detach=True),
-                             batch, key)
+        params = self.value_network_params if self.num_qvalue_nets == 1 else self.value_network_params[0]
+        q_actor = per_sample(self._network_call("value_network")(params, q_inputs, batch, detach=True), batch, key)
         per_sample_loss = -q_actor
         diagnostics = {"actor_q_mean": q_actor.detach().mean(), "actor_q_abs_mean": q_actor.detach().abs().mean()}
         if self.bc_alpha is not None:
@@ -767,9 +951,13 @@ class WeightedBellmanLoss(LossModule):
             bc = (mu - action).pow(2).reshape(*tensordict.batch_size, -1).mean(-1)
             per_sample_loss = td3bc_lambda(self.bc_alpha, q_actor) * per_sample_loss + bc
             diagnostics["bc_loss"] = bc.detach().mean()
-        if self.weight_actor_loss:
-            per_sample_loss = per_sample_loss * self._weight(tensordict)
-        return reduce_batch(per_sample_loss, self.reduction), diagnostics
+        weight = self._density_ratio(tensordict) if self.weight_actor_loss else None
+        reduce_weight = self._priority_weight(tensordict)
+        if self.weight_reduction == "normalised":
+            weight, reduce_weight = None, _product(weight, reduce_weight)
+        if weight is not None:
+            per_sample_loss = per_sample_loss * weight
+        return self._reduce_loss(per_sample_loss, tensordict, weights=reduce_weight), diagnostics
 
     def _value_terms(self, tensordict: TensorDictBase) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """The losses of one forward other than the actor's (here ``"loss_value"``) and their diagnostics, from one

@@ -1,0 +1,145 @@
+"""WeightedBellmanLoss against TorchRL's conventions: validity masks, priority weights, delay_value's meaning,
+twin critics, vmap ensembles, torch.compile and dtype / device moves (each compared with a torchrl loss)."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, OneHot
+from torchrl.objectives import DQNLoss, HardUpdate
+
+from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
+from torchrl_wbrm.objectives import WeightedBellmanLoss, WeightedLoss
+
+GAMMA = 0.9
+SPEC = OneHot(3)
+
+
+def _discrete_batch(n=16, seed=0, weight=True) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    data = TensorDict({
+        "observation": torch.randn(n, 4, generator=g),
+        "action": torch.nn.functional.one_hot(torch.randint(0, 3, (n,), generator=g), 3),
+        ("next", "observation"): torch.randn(n, 4, generator=g),
+        ("next", "reward"): torch.randn(n, 1, generator=g),
+        ("next", "done"): torch.rand(n, 1, generator=g) < 0.3,
+        ("next", "terminated"): torch.rand(n, 1, generator=g) < 0.2,
+    }, [n])
+    if weight:
+        data["density_ratio"] = torch.rand(n, 1, generator=g) * 2
+    return data
+
+
+def _discrete_pair(**kwargs):
+    """A DQNLoss (l2, target network) and a WeightedBellmanLoss on the same Q head, targets moved off the online Q."""
+    torch.manual_seed(0)
+    q = make_discrete_q_network(4, 3, num_cells=(16,))
+    dqn = DQNLoss(q, loss_function="l2", delay_value=kwargs.get("delay_value", True), action_space=SPEC)
+    ours = WeightedBellmanLoss(q, residual="squared", **kwargs)
+    for loss in (dqn, ours):
+        loss.make_value_estimator(gamma=GAMMA)
+        if kwargs.get("delay_value", True):
+            HardUpdate(loss, value_network_update_interval=10)
+    with torch.no_grad():
+        for p in q.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    return dqn, ours
+
+
+# ---------------------------------------------------------------- goal: masks
+@pytest.mark.parametrize("mask_key", [("collector", "mask"), "shifted_valid"])
+def test_masked_rows_are_dropped_as_dqn_loss_drops_them(mask_key):
+    """A validity mask on half the rows (what SliceSampler(pad_output=True) writes): the loss is DQNLoss's on the same
+    masked batch, and the loss over the valid half alone; NaN padding in the masked rows changes nothing."""
+    dqn, ours = _discrete_pair(use_weights=False)
+    data = _discrete_batch(weight=False)
+    mask = torch.arange(16) % 2 == 0
+    data.set(mask_key, mask.unsqueeze(-1))
+    expected = dqn(data.clone())["loss"]
+    torch.testing.assert_close(ours(data.clone())["loss_value"], expected)
+    torch.testing.assert_close(ours(data[mask].exclude(mask_key))["loss_value"], expected)
+    assert (ours(data.exclude(mask_key))["loss_value"] - expected).abs() > 1e-3  # the mask matters here
+    padded = data.clone()
+    padded["next", "reward"][~mask] = float("nan")
+    ours.check_inputs = False  # (the input check would name the NaN reward; padding is what masks are for)
+    torch.testing.assert_close(ours(padded)["loss_value"], expected)
+
+
+def test_masks_drop_weighted_rows_and_actor_rows():
+    """With ŵ and an actor: the masked batch gives the valid rows' value and actor losses."""
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, (1,))
+    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=0.0),
+                               actor_network=make_deterministic_actor(2, spec, num_cells=(8,)))
+    loss.make_value_estimator(gamma=GAMMA)
+    n = 12
+    data = TensorDict({
+        "observation": torch.randn(n, 2), "action": spec.rand((n,)), "density_ratio": torch.rand(n, 1) * 2,
+        ("next", "observation"): torch.randn(n, 2), ("next", "reward"): torch.randn(n, 1),
+        ("next", "done"): torch.zeros(n, 1, dtype=torch.bool), ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
+    }, [n])
+    mask = torch.rand(n) < 0.5
+    mask[0] = True
+    masked = loss(data.clone().set(("collector", "mask"), mask.unsqueeze(-1)))
+    alone = loss(data[mask])
+    for key in ("loss_value", "loss_actor", "td_error_mean", "q_mean", "weight_ess"):
+        torch.testing.assert_close(masked[key], alone[key])
+
+
+# ---------------------------------------------------------------- goal: TorchRL's meanings
+def test_priority_weight_reduces_as_torchrl_does():
+    """A priority weight p: Σ pᵢ lᵢ / Σ pᵢ, DQNLoss's value, also for the unweighted-ŵ loss and for WeightedLoss(DQNLoss)
+    given p as its weight; with ŵ the paper's mean form multiplies it into each term: Σ pᵢ ŵᵢ lᵢ / Σ pᵢ."""
+    dqn, ours = _discrete_pair(use_weights=False)
+    data = _discrete_batch()
+    data["priority_weight"] = torch.rand(16) * 3
+    expected = dqn(data.clone())["loss"]
+    torch.testing.assert_close(ours(data.clone())["loss_value"], expected)
+    wrapped = WeightedLoss(DQNLoss(dqn.value_network, loss_function="l2", action_space=SPEC), weight_key="p")
+    wrapped.loss_module.make_value_estimator(gamma=GAMMA)
+    wrapped.loss_module.target_value_network_params.update_(dqn.target_value_network_params)
+    torch.testing.assert_close(wrapped(data.clone().set("p", data["priority_weight"]).exclude("priority_weight"))["loss"],
+                               expected)
+    # ŵ and p together
+    dqn_none = DQNLoss(dqn.value_network, loss_function="l2", action_space=SPEC, reduction="none")
+    dqn_none.make_value_estimator(gamma=GAMMA)
+    dqn_none.target_value_network_params.update_(dqn.target_value_network_params)
+    per_sample = dqn_none(data.exclude("priority_weight"))["loss"]
+    w, p = data["density_ratio"].squeeze(-1), data["priority_weight"]
+    _, weighted = _discrete_pair()
+    torch.testing.assert_close(weighted(data.clone())["loss_value"], (p * w * per_sample).sum() / p.sum())
+    # the self-normalised choice: Σ ŵᵢ pᵢ lᵢ / Σ ŵᵢ pᵢ, WeightedLoss(DQNLoss)'s value
+    _, normalised = _discrete_pair(weight_reduction="normalised")
+    torch.testing.assert_close(normalised(data.clone())["loss_value"], (p * w * per_sample).sum() / (p * w).sum())
+    torch.testing.assert_close(wrapped(data.clone().set("p", w * p).exclude("priority_weight"))["loss"],
+                               (p * w * per_sample).sum() / (p * w).sum())
+
+
+def test_delay_value_false_is_torchrl_semi_gradient():
+    """delay_value=False bootstraps on the online Q, detached: DQNLoss(delay_value=False)'s value and gradient;
+    residual_gradient=True keeps the value and adds the gradient through max Q(x', ·)."""
+    dqn, ours = _discrete_pair(delay_value=False, use_weights=False)
+    data = _discrete_batch(weight=False)
+    loss_dqn, loss_ours = dqn(data.clone())["loss"], ours(data.clone())["loss_value"]
+    torch.testing.assert_close(loss_ours, loss_dqn)
+    params = list(dqn.value_network_params.values(True, True))
+    grads_dqn = torch.autograd.grad(loss_dqn, params)
+    grads_ours = torch.autograd.grad(loss_ours, list(ours.value_network_params.values(True, True)))
+    for a, b in zip(grads_dqn, grads_ours):
+        torch.testing.assert_close(a, b)
+    _, residual = _discrete_pair(delay_value=False, residual_gradient=True, use_weights=False)
+    loss_rg = residual(data.clone())["loss_value"]
+    torch.testing.assert_close(loss_rg, loss_dqn)
+    grads_rg = torch.autograd.grad(loss_rg, list(residual.value_network_params.values(True, True)))
+    assert max((a - b).abs().max() for a, b in zip(grads_rg, grads_dqn)) > 1e-3
+    with pytest.raises(ValueError, match="residual_gradient=True .* needs delay_value=False"):
+        WeightedBellmanLoss(make_discrete_q_network(4, 3, num_cells=(8,)), residual_gradient=True)
+
+
+def test_vmap_randomness_is_different_when_the_maximiser_samples():
+    spec = Bounded(-1.0, 1.0, (1,))
+    q = make_q_network(2, 1, num_cells=(8,), initial_bias=0.0)
+    assert WeightedBellmanLoss(q, maximiser="sampled", action_spec=spec).vmap_randomness == "different"
+    actor = make_deterministic_actor(2, spec, num_cells=(8,))
+    assert WeightedBellmanLoss(q, actor_network=actor).vmap_randomness == "error"
+    assert WeightedBellmanLoss(q, actor_network=actor, policy_noise=0.2).vmap_randomness == "different"
