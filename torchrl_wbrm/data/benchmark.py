@@ -56,6 +56,14 @@ from typing import Callable
 
 import numpy as np
 
+from torchrl_wbrm.data.locomotion import (
+    DEFAULT_EXPERT_SHARES,
+    DEFAULT_TRANSITIONS,
+    LOCOMOTION_DATASETS,
+    check_locomotion_ids,
+    locomotion_table,
+    make_locomotion_task,
+)
 from torchrl_wbrm.data.minari_data import minari_data_root, write_minari_dataset
 from torchrl_wbrm.data.minari_examples import collect_gym_episodes
 from torchrl_wbrm.policies.gym_experts import (
@@ -417,7 +425,13 @@ def benchmark_table(rows: list[dict]) -> str:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Write the torchrl_wbrm benchmark's Minari datasets.")
     parser.add_argument("--data-path", default="datasets/benchmark", help="Minari data path to write under")
-    parser.add_argument("--tasks", nargs="+", default=None, choices=list(BENCHMARK_TASKS))
+    parser.add_argument("--tasks", nargs="+", default=None, choices=[*BENCHMARK_TASKS, *LOCOMOTION_DATASETS],
+                        help=f"default: {' '.join(BENCHMARK_TASKS)}; the MuJoCo locomotion tasks "
+                             f"({' '.join(LOCOMOTION_DATASETS)}) are written only when named")
+    parser.add_argument("--expert-shares", nargs="+", type=int, default=list(DEFAULT_EXPERT_SHARES), metavar="PP",
+                        help="locomotion: the random-expert<PP>-v0 sets, PP%% of the transitions the expert's")
+    parser.add_argument("--transitions", type=int, default=DEFAULT_TRANSITIONS,
+                        help="locomotion: the transitions of each random-expert<PP>-v0 and of medium-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--reference-episodes", type=int, default=100)
     parser.add_argument("--namespace", default=NAMESPACE)
@@ -426,10 +440,18 @@ def main(argv=None) -> None:
                         help="write only expert-v0 and behaviour-v0 (not the expert pool, the behaviour-expert<pp>-v0 "
                              "sets and medium-v0)")
     args = parser.parse_args(argv)
+    small = [t for t in (args.tasks or BENCHMARK_TASKS) if t in BENCHMARK_TASKS]
+    locomotion = [t for t in (args.tasks or ()) if t in LOCOMOTION_DATASETS]
     try:
-        rows = make_benchmark(args.data_path, tasks=args.tasks, seed=args.seed, overwrite=args.overwrite,
+        # every id of every task checked before anything is collected, removed or written
+        check_locomotion_ids(locomotion, args.data_path, namespace=args.namespace, expert_shares=args.expert_shares,
+                             overwrite=args.overwrite)
+        rows = make_benchmark(args.data_path, tasks=small, seed=args.seed, overwrite=args.overwrite,
                               reference_episodes=args.reference_episodes, namespace=args.namespace,
-                              few_demonstrations=args.few_demonstrations)
+                              few_demonstrations=args.few_demonstrations) if small else []
+        locomotion_rows = [make_locomotion_task(name, args.data_path, seed=args.seed, namespace=args.namespace,
+                                                transitions=args.transitions, expert_shares=args.expert_shares,
+                                                overwrite=args.overwrite) for name in locomotion]
     except (ValueError, OSError, ModuleNotFoundError) as err:  # refused before anything was written, in one line
         print(f"benchmark: refused: {' '.join(str(err).split())}", file=sys.stderr)
         sys.exit(2)
@@ -437,7 +459,14 @@ def main(argv=None) -> None:
         print(f"benchmark: interrupted; a dataset being written under {args.data_path} may be incomplete: run the "
               f"command again with --overwrite to write it anew.", file=sys.stderr)
         sys.exit(130)
-    print(benchmark_table(rows))
+    if rows:
+        print(benchmark_table(rows))
+    if locomotion_rows:
+        print(locomotion_table(locomotion_rows))
+    for r in locomotion_rows:
+        print(f"{r['task']}, few demonstrations: env.minari.data_path={args.data_path} "
+              f"env.minari.expert={r['expert_pool']} env.minari.expert_episodes=5 "
+              f"env.minari.behaviour={r['random_expert05'] if 'random_expert05' in r else r['medium']}")
     for r in rows:
         print(f"{r['task']}: env.minari.data_path={args.data_path} env.minari.expert={r['expert']} "
               f"env.minari.behaviour={r['behaviour']}")

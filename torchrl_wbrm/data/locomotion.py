@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchrl_wbrm.data.minari_data import check_new_minari_ids, minari_data_root, write_minari_dataset
+from torchrl_wbrm.data.minari_data import check_new_minari_ids, write_minari_dataset
 from torchrl_wbrm.data.minari_examples import collect_gym_episodes
 
 __all__ = [
@@ -35,7 +35,9 @@ __all__ = [
     "DEFAULT_TRANSITIONS",
     "LOCOMOTION_DATASETS",
     "LocomotionTask",
+    "check_locomotion_ids",
     "locomotion_ids",
+    "locomotion_table",
     "make_locomotion_task",
     "mixture_plan",
 ]
@@ -155,6 +157,34 @@ def _steps(episodes) -> int:
     return int(sum(len(ep["rewards"]) for ep in episodes))
 
 
+def check_locomotion_ids(names, data_path, *, namespace: str = "benchmark", expert_shares=DEFAULT_EXPERT_SHARES,
+                         overwrite: bool = False) -> list:
+    """The folders of every dataset the tasks ``names`` write, each id checked first (a valid Minari id, a folder
+    inside the data path, new unless ``overwrite``); nothing is created or removed."""
+    shares = _check_shares(expert_shares)
+    dataset_ids = []
+    for name in names:
+        if name not in LOCOMOTION_DATASETS:
+            raise ValueError(f"Unknown locomotion task {name!r}: choose from {sorted(LOCOMOTION_DATASETS)}.")
+        dataset_ids += list(locomotion_ids(name, namespace, shares).values())
+    return check_new_minari_ids(dataset_ids, data_path, setting="--namespace (or --data-path)", overwrite=overwrite)
+
+
+def locomotion_table(rows: list[dict]) -> str:
+    """The locomotion datasets' make-up as Markdown: episodes, transitions, the expert's episodes and transitions
+    (and their share), the mean return ± std over episodes, D4RL's normalised score of that mean and the seconds."""
+    lines = ["| dataset | episodes | expert episodes | transitions | expert transitions | return | normalised | "
+             "seconds |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for d in r["datasets"]:
+            share = d["expert_transitions"] / d["transitions"]
+            score = 100 * (d["return_mean"] - r["ref_min_score"]) / (r["ref_max_score"] - r["ref_min_score"])
+            lines.append(f"| {d['id']} | {d['episodes']:,} | {d['expert_episodes']:,} | {d['transitions']:,} | "
+                         f"{d['expert_transitions']:,} ({100 * share:.1f}%) | {d['return_mean']:.1f} ± "
+                         f"{d['return_std']:.1f} | {score:.1f} | {d['seconds']:.0f} |")
+    return "\n".join(lines)
+
+
 def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str = "benchmark",
                          transitions: int = DEFAULT_TRANSITIONS, expert_shares=DEFAULT_EXPERT_SHARES,
                          pool_episodes: int = DEFAULT_POOL_EPISODES, overwrite: bool = False,
@@ -174,13 +204,11 @@ def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str 
     if int(transitions) < 1000:
         raise ValueError(f"--transitions must be at least 1000, got {transitions}.")
     ids = locomotion_ids(name, namespace, shares)
-    folders = check_new_minari_ids(ids.values(), data_path, setting="--namespace or --data-path",
+    # every id checked (syntax, inside the data path, new unless overwrite) before anything is removed or written
+    folders = check_new_minari_ids(ids.values(), data_path, setting="--namespace (or --data-path)",
                                    overwrite=overwrite)
-    root = minari_data_root(data_path)
     for folder in folders:
-        if overwrite and folder.exists():
-            if root not in folder.resolve().parents:
-                raise ValueError(f"{folder} is not inside the data path {root}; nothing was removed.")
+        if folder.exists():  # overwrite: the old dataset, inside the data path (checked above)
             shutil.rmtree(folder)
 
     import gymnasium as gym
