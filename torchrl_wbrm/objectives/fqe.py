@@ -13,6 +13,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, dispatch_value_estimator
 from torchrl.objectives.value import TD0Estimator
 
+from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import check_not_empty, check_reduction, fast_get, get_entry, per_sample
 from torchrl_wbrm.objectives.functional import (
     bellman_residual,
@@ -233,33 +234,48 @@ class FQELoss(LossModule):
         return keys + (["weight_mean", "weight_ess"] if self.use_weights else [])
 
     # ---------------------------------------------------------------- pieces
-    def _q(self, params, inputs: TensorDictBase) -> torch.Tensor:
-        """Q with ``params`` on ``inputs`` (a TensorDict holding Q's in_keys), shape ``[*B]``."""
-        with params.to_module(self.value_network):
-            out = self.value_network(inputs)
-        key = self.tensor_keys.state_action_value
-        return per_sample(get_entry(out, key, "the value network's output"), inputs.batch_size, key)
+    def _network_call(self, name: str) -> NetworkCall:
+        """How the loss calls ``"value_network"`` or ``"policy_network"``: a
+        :class:`~torchrl_wbrm.objectives._fast.NetworkCall` (the module on tensors for a plain TensorDictModule,
+        TorchRL's ``to_module`` call otherwise), cached per network (``_cache*``: dropped on ``.to()``)."""
+        network = getattr(self, name)
+        calls = self.__dict__.setdefault("_cache_network_calls", {})
+        entry = calls.get(name)
+        if entry is None or entry[0] is not network:
+            out_key = self.tensor_keys.state_action_value if name == "value_network" else self.tensor_keys.action
+            call = NetworkCall(network, getattr(self, f"{name}_params"), out_key,
+                               why=f"the {name.replace('_', ' ')}'s output")
+            entry = calls[name] = (network, call)
+        return entry[1]
+
+    def _q(self, params, inputs: dict, batch_size: torch.Size, *, detach: bool = False) -> torch.Tensor:
+        """Q with ``params`` on ``inputs`` (Q's in_keys -> tensors), shape ``[*B]``."""
+        out = self._network_call("value_network")(params, inputs, batch_size, detach=detach)
+        return per_sample(out, batch_size, self.tensor_keys.state_action_value)
 
     def policy_action(self, tensordict: TensorDictBase) -> torch.Tensor:
         """π's action on the states of ``tensordict`` (its in_keys read there), without gradient, in the loss's
         exploration mode."""
-        keys = self.policy_network.in_keys
-        inputs = TensorDict({k: get_entry(tensordict, k, "an input of the policy") for k in keys},
-                            tensordict.batch_size)
-        with torch.no_grad(), set_exploration_type(self.exploration_type), \
-                self.policy_network_params.to_module(self.policy_network):
-            out = self.policy_network(inputs)
-        return get_entry(out, self.tensor_keys.action, "the policy's action")
+        inputs = {k: get_entry(tensordict, k, "an input of the policy") for k in self.policy_network.in_keys}
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            return self._network_call("policy_network")(self.policy_network_params, inputs, tensordict.batch_size,
+                                                        detach=True)
 
     def next_state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``Q(x', π(x'))``, shape ``[*B]``, detached: the target parameters (``delay_value``) or the online ones."""
         next_td = get_entry(tensordict, "next", "the sub-TensorDict of next states")
-        inputs = TensorDict({k: get_entry(next_td, k, "a next-state input of the value network")
-                             for k in self._observation_keys}, next_td.batch_size)
-        inputs.set(self.tensor_keys.action, self.policy_action(next_td))
+        inputs = {k: get_entry(next_td, k, "a next-state input of the value network") for k in self._observation_keys}
+        inputs[self.tensor_keys.action] = self.policy_action(next_td)
         params = self.target_value_network_params if self.delay_value else self.value_network_params
-        with torch.no_grad():  # detached: plain tensors in Q's slots, so the swap leaves the stored ones as they are
-            return self._q(params.detach(), inputs)
+        with torch.no_grad():
+            return self._q(params, inputs, next_td.batch_size, detach=True)
+
+    @torch.no_grad()
+    def q_value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``Q(x, a)`` with the online parameters at the entries of ``tensordict`` (Q's in_keys), shape ``[*B]``, no
+        gradient: the fitted ``Q̂^π`` read back."""
+        inputs = {k: get_entry(tensordict, k, "an input of the value network") for k in self.value_network.in_keys}
+        return self._q(self.value_network_params, inputs, tensordict.batch_size, detach=True)
 
     def _weight(self, tensordict: TensorDictBase, dtype: torch.dtype) -> torch.Tensor | None:
         priority = self.tensor_keys.priority_weight
@@ -274,9 +290,8 @@ class FQELoss(LossModule):
         """``(Q(x_i, a_i), Y_i)``, each ``[*B]``, with ``Y_i = r_i + γ (1 − terminated_i) Q(x'_i, π(x'_i))``."""
         batch = tensordict.batch_size
         check_not_empty(batch, "FQE")
-        inputs = TensorDict({k: get_entry(tensordict, k, "an input of the value network")
-                             for k in self.value_network.in_keys}, batch)
-        q_value = self._q(self.value_network_params, inputs)
+        inputs = {k: get_entry(tensordict, k, "an input of the value network") for k in self.value_network.in_keys}
+        q_value = self._q(self.value_network_params, inputs, batch)
         estimator = self.value_estimator
         reward_key = _next(self.tensor_keys.reward)
         reward = per_sample(get_entry(tensordict, reward_key, "the reward"), batch, reward_key)
