@@ -82,9 +82,8 @@ def test_bad_seeds_are_refused(seeds, message):
         validate_config(tiny_lqr_config(seeds=seeds))
 
 
-def test_resume_of_seeds_is_refused():
-    with pytest.raises(ValueError, match=r"seeds=\[0, 1\] cannot be resumed"):
-        validate_config(tiny_lqr_config(seeds=[0, 1], resume="outputs/some_run"))
+def test_a_multi_seed_resume_is_a_valid_config():
+    validate_config(tiny_lqr_config(seeds=[0, 1], resume="outputs/some_run"))
 
 
 def test_per_seed_gradient_clip_is_torchs_on_each_seed():

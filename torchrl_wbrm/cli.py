@@ -9,6 +9,7 @@ Run directories and datasets are written relative to the directory the command i
 """
 from __future__ import annotations
 
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -73,7 +74,7 @@ def recipe_command() -> str:
         return "python -m torchrl_wbrm"
     if script.suffix != ".py":  # the installed console script
         return script.name
-    return f"python {sys.argv[0]}"
+    return f"python {shlex.quote(sys.argv[0])}"
 
 
 def wbrm_offline() -> None:
@@ -110,7 +111,7 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
         if (run_dir / "checkpoint.pt").is_file():
             print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
-                  f"{recipe_command()} resume={run_dir}", file=sys.stderr)
+                  f"{stops.resume_command(run_dir)}", file=sys.stderr)
         else:
             print(f"Interrupted before the first checkpoint; no checkpoint was written to {run_dir}.", file=sys.stderr)
         sys.exit(130)
@@ -133,13 +134,18 @@ def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
     in ``run_dir/seed<s>``; ``run_dir/results.json`` holds them all and the aggregate."""
     from torchrl_wbrm.training.seeds import run_seeds, summarise_seeds
 
-    resolved = OmegaConf.to_container(cfg, resolve=True)
-    loggers = {int(s): make_logger(cfg.logger, run_dir / f"seed{s}", f"wbrm_{cfg.env.name}_seed{s}",
-                                   {**resolved, "seed": int(s), "seeds": None}) for s in cfg.seeds}
+    resume = (f"Resume with: {stops.resume_command(run_dir)} (the finished seeds are kept; a seed with a checkpoint "
+              f"continues from it, the others run again)")
     try:
-        results = run_seeds(cfg, run_dir, loggers=loggers)
+        # each seed's trainer makes its logger in its folder (cfg.logger), after its own checks
+        results = run_seeds(cfg, run_dir, resume=bool(cfg.resume))
+    except RunInterrupted as err:  # a seed trained one at a time stopped at a step, after a checkpoint
+        print(f"{err.signal_name} received: seed {err.run_dir.name.removeprefix('seed')} stopped in stage "
+              f"{err.stage!r} at step {err.step}, checkpoint written to {err.run_dir / 'checkpoint.pt'}. {resume}",
+              file=sys.stderr)
+        sys.exit(err.exit_code)
     except KeyboardInterrupt:
-        print(f"Interrupted; a multi-seed run writes no checkpoint: run it again ({run_dir}).", file=sys.stderr)
+        print(f"Interrupted. {resume}", file=sys.stderr)
         sys.exit(130)
     print(summarise_seeds(results))
     print(f"run directory: {run_dir}")

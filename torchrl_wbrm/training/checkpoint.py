@@ -3,6 +3,7 @@ or a file that is not one, is a clear error naming the file.
 """
 from __future__ import annotations
 
+import hashlib
 import pickle
 import pickletools
 import re
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["CHECKPOINT_KEYS", "read_checkpoint"]
+__all__ = ["CHECKPOINT_KEYS", "data_fingerprint", "read_checkpoint", "same_data"]
 
 
 #: Keys of a checkpoint written by :meth:`WBRMTrainer.state_dict`.
@@ -106,3 +107,34 @@ def read_checkpoint(path: Path) -> dict:
     if missing:
         raise RuntimeError(f"Cannot resume: {path} is not a complete checkpoint (it lacks {missing}).")
     return sd
+
+
+def data_fingerprint(datasets) -> str:
+    """The SHA-256 of every tensor of a run's data (``D``, ``S^b`` and ``S^e`` of an
+    :class:`~torchrl_wbrm.data.OfflineDatasets`): each entry's name, dtype, shape and bytes, in a fixed order. A
+    checkpoint records it, and a resume on data that differ in any value (a reward changed in the dataset's files,
+    another env or seed) is refused (:func:`same_data`)."""
+    digest = hashlib.sha256()
+    for part in ("transitions", "behaviour_samples", "expert_samples"):
+        buffer = getattr(datasets, part, None)
+        if buffer is None or len(buffer) == 0:
+            digest.update(f"{part}/empty".encode())
+            continue
+        td = buffer[:]
+        for key in sorted(td.keys(include_nested=True, leaves_only=True), key=str):
+            tensor = td.get(key).detach().cpu().contiguous()
+            digest.update(f"{part}/{key}/{tensor.dtype}/{tuple(tensor.shape)}".encode())
+            digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+    return digest.hexdigest()
+
+
+def same_data(saved, datasets, fingerprint: str | None = None) -> bool:
+    """Whether a checkpoint's ``data_fingerprint`` (``saved``) is that of ``datasets``: the SHA-256 of every tensor
+    (:func:`data_fingerprint`). A checkpoint of an older version recorded a float, the sum of D's first 100 rows'
+    observations and actions; it is compared by that rule (so an older run stays resumable). ``fingerprint``:
+    ``datasets``' own, when computed already."""
+    if isinstance(saved, str):
+        return saved == (fingerprint or data_fingerprint(datasets))
+    d = datasets.transitions[:]
+    legacy = float(d["observation"][:100].double().sum() + d["action"][:100].double().sum())
+    return isinstance(saved, (int, float)) and abs(saved - legacy) <= 1e-6

@@ -296,7 +296,8 @@ class WBRMConfig:
             one run of ``seed``). Each seed gets the data, initialisation, draws and evaluation of a separate run
             with that seed, in ``<run dir>/seed<s>``; ``wbrm``, ``brm`` and ``fqi`` are vectorised over the seeds
             (:mod:`torchrl_wbrm.training.seeds`), other algos train them one at a time. The run directory's
-            ``results.json`` holds every seed's results and their mean and 95% CI. Not resumable.
+            ``results.json`` holds every seed's results and their mean and 95% CI. ``resume=<run dir>`` continues an
+            interrupted multi-seed run: its finished seeds are kept, the others continue or run anew.
         device: torch device.
         threads: torch threads (default 1, as the recipe: sweeps run runs side by side; ``None``: torch's default).
         checkpoint_every: steps between checkpoints (0: only at the end of each stage).
@@ -469,8 +470,43 @@ def _merged_node(cfg) -> DictConfig:
     return OmegaConf.merge(config_schema(), cfg)
 
 
+def _unknown_keys(node, schema, prefix: str = ""):
+    """Dotted keys of ``node`` (a dataclass, DictConfig or dict) that ``schema`` (the schema's node) lacks."""
+    from dataclasses import fields, is_dataclass
+
+    if is_dataclass(node) and not isinstance(node, type):
+        names = {f.name for f in fields(node)}
+        items = [(k, v) for k, v in vars(node).items() if not k.startswith("_")]
+        items = [(k, v) for k, v in items if k in names] + [(k, v) for k, v in items if k not in names]
+    elif isinstance(node, (dict, DictConfig)):
+        items = list(node.items_ex(resolve=False) if isinstance(node, DictConfig) else node.items())
+    else:
+        return
+    for key, value in items:
+        if not isinstance(schema, DictConfig) or key not in schema:
+            yield f"{prefix}{key}", (list(schema.keys()) if isinstance(schema, DictConfig) else [])
+        elif isinstance(schema[key] if not OmegaConf.is_missing(schema, key) else None, DictConfig):
+            yield from _unknown_keys(value, schema[key], f"{prefix}{key}.")
+
+
+def check_known_keys(cfg) -> None:
+    """Refuse a config holding a key the schema does not have, however it was added (Hydra's ``+q.step=1000``, an
+    attribute set on a dataclass), naming it and the nearest setting: a misspelt key fails at start instead of being
+    ignored."""
+    import difflib
+
+    for key, siblings in _unknown_keys(cfg, config_schema()):
+        parent, _, name = key.rpartition(".")
+        near = difflib.get_close_matches(name, [str(k) for k in siblings], n=1)
+        hint = f" (did you mean {parent + '.' if parent else ''}{near[0]}?)" if near else ""
+        raise ValueError(f"{key} is not a setting of this recipe{hint}; see torchrl_wbrm.training.config.WBRMConfig "
+                         f"for every setting.")
+
+
 def merge_config(cfg) -> WBRMConfig:
-    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict, merged on the schema (so unknown keys fail)."""
+    """A ``WBRMConfig`` from a dataclass, a DictConfig or a dict, merged on the schema; a key the schema does not
+    have is refused (:func:`check_known_keys`), however it was added."""
+    check_known_keys(cfg)
     return OmegaConf.to_object(_merged_node(cfg))
 
 
@@ -584,9 +620,6 @@ def validate_config(cfg, task: Task | None = None) -> None:
         seeds = list(cfg.seeds)
         if not seeds or len(set(seeds)) != len(seeds) or not all(isinstance(s, int) and s >= 0 for s in seeds):
             raise ValueError(f"seeds must be a non-empty list of distinct seeds >= 0 (or null), got {seeds}.")
-        if cfg.resume:
-            raise ValueError(f"seeds={seeds} cannot be resumed (resume={cfg.resume!r}): a multi-seed run writes no "
-                             "checkpoint; run it again, or resume one seed's run started with seed=<s>.")
     validate_run_settings(cfg, task)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
 
 

@@ -29,7 +29,7 @@ from torchrl.record.loggers import get_logger
 from torchrl_wbrm._console import quiet_libraries
 
 __all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_run_summary", "log_study_summary",
-           "markdown_tables"]
+           "markdown_tables", "truncate_csv_logs"]
 
 def configure_console(verbose: bool) -> None:
     """Silence the libraries' INFO chatter on the console (``verbose=False``), or bring it back (``True``): torchrl's
@@ -116,6 +116,7 @@ def make_logger(logger_cfg, run_dir: str | os.PathLike, experiment_name: str, co
     if backend != "wandb":
         raise ValueError(f"logger.backend must be 'csv', 'wandb' or '' (none), got {backend!r}.")
     config = dict(config or {})
+    _wandb_dirs_under(run_dir)
     if not os.environ.get("WANDB_SILENT"):
         os.environ["WANDB_SILENT"] = "true"
     kwargs = {"project": logger_cfg.project, "config": config, "settings": _wandb_settings()}
@@ -132,6 +133,72 @@ def make_logger(logger_cfg, run_dir: str | os.PathLike, experiment_name: str, co
         kwargs["mode"] = logger_cfg.mode
     kwargs["log_env_packages"] = False  # the run's config is the recipe's, not the list of installed packages
     return get_logger("wandb", logger_name=str(run_dir), experiment_name=experiment_name, wandb_kwargs=kwargs)
+
+
+#: wandb's folders outside its run directory (``$HOME``'s by default): its data folder (artifact staging copies of the
+#: images and tables a run logs) and its cache. A run puts them under ``<run dir>/wandb/``; a value the user set is
+#: kept.
+_WANDB_DIRS = {"WANDB_DATA_DIR": ".data", "WANDB_CACHE_DIR": ".cache"}
+_WANDB_DIRS_SET: dict[str, str] = {}
+
+
+def _wandb_dirs_under(run_dir: Path) -> None:
+    """Point wandb's data (staging) and cache folders into ``run_dir/wandb/`` (its debug logs go to its run folder
+    there already), unless the user set them: a run writes nothing under ``$HOME``."""
+    for var, name in _WANDB_DIRS.items():
+        if os.environ.get(var) not in (None, _WANDB_DIRS_SET.get(var)):
+            continue  # the user's own setting
+        path = str(Path(run_dir).absolute() / "wandb" / name)
+        os.environ[var] = _WANDB_DIRS_SET[var] = path
+
+
+def truncate_csv_logs(logs: Path, stage: str, step: int, *, stages=("ratio", "q"),
+                      reevaluated: bool = False) -> list[Path]:
+    """Drop the rows of a resumed run's CSV logs (``logs/<experiment>/scalars/<section>/<name>.csv``, torchrl's
+    ``CSVLogger``) that the run writes again after its checkpoint (stage ``stage``, step ``step``): so each step is
+    logged once, even after a SIGKILL between two checkpoints.
+
+    Sections: ``ratio/`` and ``ratio_eval/`` are stage 1's, ``q/`` and ``eval/`` stage 2's (by its step), and
+    ``weights/`` is written once when stage 2 starts. A checkpoint in stage 1 keeps stage 1's rows up to ``step``
+    and none of stage 2's; one in stage 2 keeps stage 1's and ``weights/`` and stage 2's rows up to ``step``; a
+    finished run (``"done"``) keeps every row, but with ``reevaluated`` (a finished run evaluated anew) its
+    evaluation rows at ``step`` go. Each file is rewritten whole (created fresh, then renamed). Returns the files
+    changed."""
+    from torchrl_wbrm.training.results import atomic_write
+
+    logs = Path(logs)
+    changed = []
+    if not logs.is_dir() or logs.is_symlink():
+        return changed
+    order = {name: i for i, name in enumerate(stages)}
+    for path in sorted(logs.glob("*/scalars/*/*.csv")):
+        section = path.parent.name
+        owner = {"ratio": "ratio", "ratio_eval": "ratio", "weights": "weights", "q": "q", "eval": "q"}.get(section)
+        if owner is None:
+            continue
+        if stage == "done":
+            limit = step - 1 if reevaluated and section == "eval" else None
+        elif owner == "weights":
+            limit = None if order.get(stage, 0) > 0 else -1
+        elif owner == stage:
+            limit = step
+        else:  # another stage: before this one (all kept) or after it (none kept)
+            limit = None if order.get(owner, 0) < order.get(stage, 0) else -1
+        if limit is None:
+            continue
+        lines = path.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if _csv_step(line) is not None and _csv_step(line) <= limit]
+        if len(kept) != len(lines):
+            atomic_write(path, lambda f, text="".join(kept): f.write(text.encode()))
+            changed.append(path)
+    return changed
+
+
+def _csv_step(line: str) -> int | None:
+    try:
+        return int(float(line.split(",", 1)[0]))
+    except ValueError:
+        return None
 
 
 def _wandb_run(logger):

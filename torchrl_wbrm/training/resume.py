@@ -232,6 +232,17 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     checkpoint read (``None`` for a new run)."""
     run_dir = Path(run_dir)
     path = run_dir / CHECKPOINT
+    seeds = getattr(cfg, "seeds", None)
+    if resume and seeds:  # a multi-seed run: its seeds' folders are checked by their own trainers
+        if not run_dir.is_dir():
+            raise FileNotFoundError(f"Cannot resume: {run_dir} is not a directory (no multi-seed run there).")
+        claim = claim or claim_run_dir(run_dir)
+        try:
+            refuse_links(run_dir)
+        except BaseException:
+            claim.release()
+            raise
+        return claim, None
     if resume and not path.is_file():
         read_checkpoint(path)  # FileNotFoundError naming the directory; nothing is created
     claim = claim or claim_run_dir(run_dir)

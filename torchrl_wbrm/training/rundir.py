@@ -54,9 +54,13 @@ WRITTEN_INTO = ("logs", "wandb", *HYDRA_RECORD)
 
 
 def holds_run(run_dir: Path) -> list[str]:
-    """The files of :data:`RUN_FILES` (and ``history.json``) in ``run_dir``, if any of :data:`RUN_FILES` is there."""
-    present = [name for name in (*RUN_FILES, "history.json") if (Path(run_dir) / name).exists()]
-    return present if any(name in RUN_FILES for name in present) else []
+    """The files of :data:`RUN_FILES` (and ``history.json``) in ``run_dir`` and in its ``seed<s>/`` folders (a
+    multi-seed run's, finished or interrupted), if any of :data:`RUN_FILES` is among them."""
+    run_dir = Path(run_dir)
+    present = [name for name in (*RUN_FILES, "history.json") if (run_dir / name).exists()]
+    for seed_dir in _seed_dirs(run_dir):
+        present += [f"{seed_dir.name}/{name}" for name in RUN_FILES if (seed_dir / name).exists()]
+    return present if any(name.rsplit("/", 1)[-1] in RUN_FILES for name in present) else []
 
 
 def _seed_dirs(run_dir: Path) -> list[Path]:

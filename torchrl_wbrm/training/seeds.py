@@ -24,7 +24,9 @@ the history and ``results.json`` of a seed are written by the trainer exactly as
 diverges is recorded as diverged (its ``results.json`` says where) and the others go on.
 
 Other algorithms, and settings the vectorised step does not cover (:func:`not_vectorised`), train the seeds one at a
-time in the same process. A multi-seed run writes no checkpoint and cannot be resumed.
+time in the same process (each seed checkpoints as a separate run does). A multi-seed run is resumed
+(``resume=<run dir>``, :func:`run_seeds`' ``resume``) seed by seed: finished seeds are kept, a seed with a
+checkpoint continues from it, the others run anew.
 
 The run directory's ``results.json`` holds every seed's results under ``"runs"`` and the aggregate over the seeds
 (mean and 95% Student-t interval of each final figure, :func:`~torchrl_wbrm.evaluation.stats.mean_ci`) under
@@ -60,6 +62,12 @@ VECTORISED_ALGOS = ("wbrm", "brm", "fqi")
 
 _VALUE, _ACTOR = "value_network_params", "actor_network_params"
 _TARGET_VALUE, _TARGET_ACTOR = "target_value_network_params", "target_actor_network_params"
+
+
+def _logger_for(loggers: dict | None, seed: int):
+    """Seed ``seed``'s logger: ``loggers[seed]`` (``None`` if absent), or without ``loggers`` the one its config
+    names (the trainer's ``logger="config"``)."""
+    return "config" if loggers is None else loggers.get(int(seed))
 
 
 def seed_config(cfg: WBRMConfig, seed: int) -> WBRMConfig:
@@ -188,7 +196,8 @@ class SeedGroup:
 
     Keyword Args:
         progress: show a progress bar per stage.
-        loggers: ``seed -> logger`` (a torchrl ``Logger`` or ``None``), given to the seeds' trainers.
+        loggers: ``seed -> logger`` (a torchrl ``Logger`` or ``None``), given to the seeds' trainers; without it
+            (``None``) each seed's trainer makes the logger ``cfg.logger`` names in its folder, as a separate run.
     """
 
     def __init__(self, cfg, run_dir, *, progress: bool = True, loggers: dict | None = None):
@@ -202,7 +211,7 @@ class SeedGroup:
         self.trainers, self.generators = [], []
         for seed in self.seeds:
             trainer = WBRMTrainer(seed_config(self.cfg, seed), self.run_dir / f"seed{seed}", progress=False,
-                                  logger=(loggers or {}).get(seed))
+                                  logger=_logger_for(loggers, seed))
             generator = torch.Generator()
             generator.set_state(torch.get_rng_state())  # what this seed's separate run draws next
             self.trainers.append(trainer)
@@ -605,46 +614,104 @@ def _combined(cfg: WBRMConfig, runs: list[dict], *, vectorised: bool, reason: st
     })
 
 
-def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = None, vectorise: bool = True) -> dict:
+def _earlier_seeds(cfg: WBRMConfig, run_dir: Path) -> tuple[dict[int, dict], list[int]]:
+    """A resumed multi-seed run's seeds: ``(finished, checkpointed)``, the finished seeds' results (their
+    ``results.json``, reused only for this config: :func:`~torchrl_wbrm.training.resume.check_finished_config`) and
+    the seeds whose folder holds a checkpoint (an interrupted seed of a run trained one seed at a time)."""
+    import json
+
+    from torchrl_wbrm.keys import CHECKPOINT
+    from torchrl_wbrm.training.resume import check_finished_config
+
+    finished, checkpointed = {}, []
+    for seed in cfg.seeds:
+        seed_dir = run_dir / f"seed{seed}"
+        done = seed_dir / "results.json"
+        if done.is_file():
+            try:
+                results = json.loads(done.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError) as err:
+                raise ValueError(f"Cannot resume: {done} is damaged ({err}); delete it to run seed {seed} "
+                                 f"again.") from None
+            if not (isinstance(results, dict) and isinstance(results.get("config"), dict)):
+                raise ValueError(f"Cannot resume: {done} holds no config (key 'config'), so it cannot be told to be "
+                                 f"this run's seed {seed}; delete it to run that seed again.")
+            check_finished_config(done, results["config"], config_as_dict(seed_config(cfg, seed)))
+            finished[int(seed)] = results
+            continue
+        if (seed_dir / CHECKPOINT).is_file():
+            checkpointed.append(int(seed))
+    return finished, checkpointed
+
+
+def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = None, vectorise: bool = True,
+              resume: bool = False) -> dict:
     """Train ``cfg.seeds`` in one process into ``run_dir`` (``run_dir/seed<s>`` per seed) and write
     ``run_dir/results.json`` (every seed's results under ``"runs"``, the aggregate under ``"aggregate"``).
 
     ``vectorise=False`` trains the seeds one at a time (what a config :func:`not_vectorised` refuses gets); a refusal
-    is printed in one line on stderr. Returns the combined results.
+    is printed in one line on stderr. ``cfg.overwrite``: an earlier run in ``run_dir`` is replaced whole (its
+    ``results.json`` and every ``seed<s>/`` folder's outputs, the seeds this run does not train included).
+    ``resume``: continue an interrupted multi-seed run in ``run_dir``: its finished seeds are kept (their results
+    reused, for this config only), a seed whose folder holds a checkpoint resumes from it, and the others run anew.
+    Returns the combined results.
     """
     import sys
 
+    from torchrl_wbrm.training.rundir import clear_run_outputs, holds_run
 
     cfg = to_config(cfg)
     if not cfg.seeds:
         raise ValueError("run_seeds needs cfg.seeds, a list of seeds.")
     run_dir = Path(run_dir)
     start = time.perf_counter()
-    reason = not_vectorised(cfg) if vectorise else "vectorise=False"
+    finished, checkpointed = _earlier_seeds(cfg, run_dir) if resume else ({}, [])
+    if not resume and cfg.overwrite and holds_run(run_dir):
+        clear_run_outputs(run_dir)  # the earlier multi-seed run goes whole: no stale seed<s>/ outlives it
+    todo = [int(s) for s in cfg.seeds if int(s) not in finished and int(s) not in checkpointed]
+    if resume:
+        for seed in todo:  # an unfinished seed without a checkpoint runs anew: its partial logs go first
+            clear_run_outputs(run_dir / f"seed{seed}")
+    runs_by_seed: dict[int, dict] = dict(finished)
+    timing = {"setup": 0.0, "training": 0.0}
+    for seed in checkpointed:  # interrupted seeds of a run trained one at a time: each resumes on its own
+        t0 = time.perf_counter()
+        trainer = WBRMTrainer(seed_config(cfg, seed), run_dir / f"seed{seed}", progress=progress,
+                              logger=_logger_for(loggers, seed), resume=True)
+        t1 = time.perf_counter()
+        runs_by_seed[seed] = trainer.run()
+        timing["setup"] += t1 - t0
+        timing["training"] += time.perf_counter() - t1
+    reason = "no seed left to train" if not todo else not_vectorised(cfg) if vectorise else "vectorise=False"
     group = None
-    if reason is None:
-        group = SeedGroup(cfg, run_dir, progress=progress, loggers=loggers)
+    rest = seed_config(cfg, todo[0]) if todo else None
+    if todo:
+        node = OmegaConf.structured(rest)
+        node.seeds = todo
+        rest = OmegaConf.to_object(node)
+    if todo and reason is None:
+        group = SeedGroup(rest, run_dir, progress=progress, loggers=loggers)
         reason = group.refusal()
-    if reason is None:
-        runs = group.run()
-        timing = dict(group.timing)
-    else:
+    if todo and reason is None:
+        runs_by_seed.update(zip(todo, group.run()))
+        timing.update({k: timing.get(k, 0.0) + v for k, v in group.timing.items()})
+    elif todo:
         if vectorise:
-            print(f"seeds: {reason}; training the {len(cfg.seeds)} seeds one at a time in this process.",
+            print(f"seeds: {reason}; training the {len(todo)} seeds one at a time in this process.",
                   file=sys.stderr)
-        runs, timing = [], {"setup": 0.0, "training": 0.0}
-        for i, seed in enumerate(cfg.seeds):
+        for i, seed in enumerate(todo):
             t0 = time.perf_counter()
             if group is not None:  # built, then refused on the data: its trainers run, each from its own draws
                 trainer = group.trainers[i]
                 torch.set_rng_state(group.generators[i].get_state())
             else:
                 trainer = WBRMTrainer(seed_config(cfg, seed), run_dir / f"seed{seed}", progress=progress,
-                                      logger=(loggers or {}).get(int(seed)))
+                                      logger=_logger_for(loggers, seed))
             t1 = time.perf_counter()
-            runs.append(trainer.run())
+            runs_by_seed[seed] = trainer.run()
             timing["setup"] += t1 - t0
             timing["training"] += time.perf_counter() - t1
+    runs = [runs_by_seed[int(s)] for s in cfg.seeds]
     timing["total"] = time.perf_counter() - start
     results = _combined(cfg, runs, vectorised=reason is None, reason=reason, timing=timing)
     results["wall_seconds"] = timing["total"]

@@ -13,7 +13,7 @@ import torch
 
 from torchrl_wbrm.keys import CHECKPOINT
 
-__all__ = ["RESUME_COMMAND", "RunInterrupted", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
+__all__ = ["RESUME_COMMAND", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
            "non_finite_parameter"]
 
 
@@ -33,6 +33,15 @@ class TrainingDiverged(RuntimeError):
 RESUME_COMMAND = "python recipes/wbrm_offline.py"
 
 
+def resume_command(run_dir) -> str:
+    """The command that resumes the run in ``run_dir``, as a shell reads it: :data:`RESUME_COMMAND` and
+    ``resume=<run dir>``, the override quoted (``shlex.quote``) where the path holds a space or another character a
+    shell would split on."""
+    import shlex
+
+    return f"{RESUME_COMMAND} {shlex.quote(f'resume={run_dir}')}"
+
+
 class RunInterrupted(Exception):
     """SIGINT or SIGTERM stopped the run after a checkpoint; ``signal_name``, ``stage``, ``step``, ``run_dir``."""
 
@@ -43,7 +52,7 @@ class RunInterrupted(Exception):
         where = f"during the {during} " if during else ""
         super().__init__(
             f"{self.signal_name} received: stopped {where}in stage {stage!r} at step {step}, checkpoint written to "
-            f"{self.run_dir / CHECKPOINT}. Resume with: {RESUME_COMMAND} resume={self.run_dir}"
+            f"{self.run_dir / CHECKPOINT}. Resume with: {resume_command(self.run_dir)}"
         )
 
     @property

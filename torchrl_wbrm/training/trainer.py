@@ -46,9 +46,11 @@ from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_retu
 from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
                                 expert_like_scores, store_density_ratio)
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
+from torchrl_wbrm.training.checkpoint import data_fingerprint, same_data
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour, return_fell
-from torchrl_wbrm.training.logging import configure_console, log_run_summary, progress_postfix
+from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
+                                          truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
@@ -140,7 +142,9 @@ class WBRMTrainer:
             (:func:`default_run_dir`). A resume needs the directory it continues.
 
     Keyword Args:
-        logger: a torchrl ``Logger`` (or ``None``).
+        logger: a torchrl ``Logger``, ``None`` (no logging), or ``"config"`` (the default): the logger
+            ``cfg.logger`` names, made as the recipe makes it (CSV under ``run_dir/logs/`` by default), so a run
+            through the API writes the files the recipe writes.
         resume: continue from ``run_dir/checkpoint.pt``.
         progress: show tqdm bars.
 
@@ -150,13 +154,18 @@ class WBRMTrainer:
     nothing on disk (a resume of a directory that does not exist creates none).
     """
 
-    def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger=None, resume: bool = False,
+    def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger="config", resume: bool = False,
                  progress: bool = True):
         self._claim: RunDirClaim | None = None
         # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
         # one run's data, so a prepared task already used by another trainer is built anew
         prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)
         self.cfg: WBRMConfig = prepared.config
+        if self.cfg.seeds is not None:  # one trainer is one run: several seeds are run_seeds' (the recipe's seeds=)
+            raise ValueError(
+                f"seeds={list(self.cfg.seeds)}: a WBRMTrainer trains one run, of cfg.seed; train several seeds with "
+                f"torchrl_wbrm.training.seeds.run_seeds(cfg, run_dir) (the recipe's seeds=[...]), or one WBRMTrainer "
+                f"per seed with seed=<s> and seeds=None.")
         self.task: Task = prepared.task if prepared.task.datasets is None else get_task(self.cfg.env)
         if run_dir is None:
             if resume:
@@ -194,7 +203,7 @@ class WBRMTrainer:
             check_run_dir(self.run_dir, overwrite=self.cfg.overwrite)  # overwrite=true: the earlier run's outputs go
         self._stop = None  # StopSignals while run() runs
         self._checkpoint_state: dict | None = None  # the state of the last checkpoint written (all finite)
-        self.logger = logger
+        self.logger = None if isinstance(logger, str) else logger
         self.progress = progress
         self.device = torch.device(self.cfg.device)
         configure_console(self.cfg.verbose)  # library INFO chatter (torchrl's storage lines) only with verbose=true
@@ -210,6 +219,11 @@ class WBRMTrainer:
         self._setup_evaluation()
         if resume:
             self._load_checkpoint()
+            reevaluated = self.state["stage"] == "done" and any(k.startswith("eval.") for k in self.resume_changes)
+            truncate_csv_logs(self.run_dir / "logs", self.state["stage"], self.state["step"], reevaluated=reevaluated)
+        if isinstance(logger, str) and logger == "config":  # the recipe's logger (cfg.logger), as the recipe makes it
+            self.logger = make_logger(self.cfg.logger, self.run_dir, f"wbrm_{self.cfg.env.name}_seed{self.cfg.seed}",
+                                      self.config_record())
 
     # ------------------------------------------------------------------ setup
     def _check_d_settings(self) -> None:
@@ -252,8 +266,8 @@ class WBRMTrainer:
         self.action_dim = d["action"].shape[-1]
         self.action_spec = self.task.action_spec()
         self.gamma = self.task.gamma(self.cfg.q.gamma)
-        # a fingerprint to refuse resuming on different data
-        self.data_fingerprint = float(d["observation"][:100].double().sum() + d["action"][:100].double().sum())
+        # the SHA-256 of every tensor of D, S^b and S^e: a resume on different data is refused
+        self.data_fingerprint = data_fingerprint(self.datasets)
 
     def _setup_ratio(self) -> None:
         rc = self.cfg.ratio
@@ -894,9 +908,11 @@ class WBRMTrainer:
         """Restore the checkpoint read (and whose config was checked) in ``__init__``."""
         path = self.run_dir / CHECKPOINT
         sd = self._resume_sd
-        if abs(sd["data_fingerprint"] - self.data_fingerprint) > 1e-6:
+        if not same_data(sd["data_fingerprint"], self.datasets, self.data_fingerprint):
             raise ValueError(
-                f"Cannot resume from {path}: its data differ from this config's (env or seed changed?)."
+                f"Cannot resume from {path}: its data differ from the data this config reads now (the SHA-256 of "
+                f"every tensor of D, S^b and S^e differs: the dataset's files changed, or the env or seed); a resume "
+                f"never mixes two datasets. Start a new run on these data."
             )
         self.state = sd["state"]
         self.history = sd["history"]
@@ -914,6 +930,10 @@ class WBRMTrainer:
             self.ratio_fitter.load_state_dict({"loss_module": sd["ratio_loss"], "optimizer": sd["ratio_optim"],
                                                "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
         if self.state["stage"] != "ratio":
-            self._build_q_buffer()
+            logger, self.logger = self.logger, None  # the weights were logged when stage 2 first started
+            try:
+                self._build_q_buffer()
+            finally:
+                self.logger = logger
         set_rng_state(sd["rng"])
         self._resume_sd = None  # restored: free the copy

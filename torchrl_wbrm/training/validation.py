@@ -11,7 +11,7 @@ import torch
 
 from torchrl_wbrm.data.tasks import get_task
 
-__all__ = ["check_device", "check_logger", "validate_run_settings"]
+__all__ = ["SEED_LIMIT", "check_device", "check_logger", "check_seeds", "validate_run_settings"]
 
 
 def _leaves(node, prefix: str = ""):
@@ -65,6 +65,34 @@ def check_logger(logger_cfg, key: str = "logger") -> None:
             raise ValueError(f"{key}.{name}={value!r} is refused by wandb: {err}") from err
 
 
+#: Seeds lie in ``[0, 2**32)``: NumPy's and the envs' seeds are 32-bit, so a larger seed would repeat the draws of
+#: the seed it equals mod ``2**32``.
+SEED_LIMIT = 2**32
+
+
+def check_seeds(cfg) -> None:
+    """Refuse, naming the setting, a seed (``seed``, ``eval.seed``, an entry of ``seeds``) outside ``[0, 2**32)``,
+    and ``seeds`` holding two seeds the random generators would take as one (equal mod ``2**32``): those runs would
+    be the same run counted twice."""
+    for key, value in (("seed", cfg.seed), ("eval.seed", cfg.eval.seed)):
+        if not value >= 0:
+            raise ValueError(f"{key} must be >= 0, got {value!r}.")
+        if not (isinstance(value, int) and 0 <= value < SEED_LIMIT):
+            raise ValueError(f"{key}={value!r} is out of range: a seed must be an integer in [0, 2**32 - 1] "
+                             f"(NumPy's and the envs' seeds are 32-bit; a larger one repeats a smaller one's draws).")
+    if cfg.seeds is None:
+        return
+    seen: dict[int, int] = {}
+    for seed in cfg.seeds:
+        if not (isinstance(seed, int) and 0 <= seed < SEED_LIMIT):
+            raise ValueError(f"seeds holds {seed!r}, out of range: a seed must be an integer in [0, 2**32 - 1] "
+                             f"(NumPy's and the envs' seeds are 32-bit; {seed!r} would repeat the draws of seed "
+                             f"{seed % SEED_LIMIT if isinstance(seed, int) else '?'}).")
+        if seed in seen:
+            raise ValueError(f"seeds={list(cfg.seeds)} holds seed {seed} twice: each seed is one run.")
+        seen[seed] = seed
+
+
 def validate_run_settings(cfg, task=None) -> None:
     """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
     data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports.
@@ -72,10 +100,7 @@ def validate_run_settings(cfg, task=None) -> None:
     for key, value in _leaves(cfg):
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"{key}={value!r}: every number in the config must be finite.")
-    if not cfg.seed >= 0:
-        raise ValueError(f"seed must be >= 0, got {cfg.seed!r}.")
-    if not cfg.eval.seed >= 0:
-        raise ValueError(f"eval.seed must be >= 0, got {cfg.eval.seed!r}.")
+    check_seeds(cfg)
     if not cfg.eval.q_samples > 0:
         raise ValueError(f"eval.q_samples must be > 0 (the samples of the Q* and ratio errors), got {cfg.eval.q_samples!r}.")
     if cfg.threads is not None and not cfg.threads >= 1:
