@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded, OneHot
-from torchrl.objectives import DQNLoss, HardUpdate
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss, WeightedLoss
@@ -143,3 +143,162 @@ def test_vmap_randomness_is_different_when_the_maximiser_samples():
     actor = make_deterministic_actor(2, spec, num_cells=(8,))
     assert WeightedBellmanLoss(q, actor_network=actor).vmap_randomness == "error"
     assert WeightedBellmanLoss(q, actor_network=actor, policy_noise=0.2).vmap_randomness == "different"
+
+
+# ---------------------------------------------------------------- goal: vmap ensembles and compile
+def _continuous_batch(seed: int, n: int = 8) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict({
+        "observation": torch.randn(n, 2, generator=g), "action": torch.rand(n, 1, generator=g) * 2 - 1,
+        "density_ratio": torch.rand(n, 1, generator=g) * 2,
+        ("next", "observation"): torch.randn(n, 2, generator=g), ("next", "reward"): torch.randn(n, 1, generator=g),
+        ("next", "done"): torch.zeros(n, 1, dtype=torch.bool),
+        ("next", "terminated"): torch.rand(n, 1, generator=g) < 0.2,
+    }, [n])
+
+
+def _continuous_loss(**kwargs) -> WeightedBellmanLoss:
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, (1,))
+    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=0.0),
+                               actor_network=make_deterministic_actor(2, spec, num_cells=(8,)), **kwargs)
+    loss.make_value_estimator(gamma=GAMMA)
+    SoftUpdate(loss, tau=0.1)
+    return loss
+
+
+def _members(loss, num_members: int) -> TensorDict:
+    """The loss's parameters, stacked for ``num_members`` members, each perturbed with its own generator."""
+    params = TensorDict.from_module(loss)
+    members = []
+    for m in range(num_members):
+        g = torch.Generator().manual_seed(100 + m)
+        members.append(params.apply(lambda p: p + 0.1 * torch.randn(p.shape, generator=g)
+                                    if p.is_floating_point() and p.device.type != "meta" else p))
+    return torch.stack(members).detach()
+
+
+@pytest.mark.parametrize("reward_bound", [None, 1.0])
+@pytest.mark.parametrize("batch_per_member", [False, True])
+def test_a_stacked_parameter_ensemble_under_vmap_equals_a_loop(reward_bound, batch_per_member):
+    """TorchRL's ensemble recipe (TensorDict.from_module, torch.stack, params.to_module inside torch.vmap) runs 150
+    calls, past the Q-bound watch's first read at call 100, with reward_bound set (read from the first call) and
+    with one batch per member; every member's losses equal a loop's."""
+    num_members = 3
+    loss = _continuous_loss(reward_bound=reward_bound)
+    stacked = _members(loss, num_members)
+
+    def call(params, batch):
+        with params.to_module(loss):
+            out = loss(batch)
+        return out["loss_value"], out["loss_actor"]
+
+    ensemble = torch.vmap(call, (0, 0 if batch_per_member else None), randomness=loss.vmap_randomness)
+    for i in range(150):
+        batches = [_continuous_batch(1000 * i + m) for m in range(num_members if batch_per_member else 1)]
+        batch = torch.stack(batches) if batch_per_member else batches[0]
+        value, actor = ensemble(stacked, batch.clone())
+        if i % 50 == 0 or i == 149:
+            for m in range(num_members):
+                expected = call(stacked[m], batches[m if batch_per_member else 0].clone())
+                torch.testing.assert_close((value[m], actor[m]), expected)
+
+
+def test_a_sampled_maximiser_runs_in_a_vmap_ensemble():
+    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=0.0), maximiser="sampled",
+                               action_spec=Bounded(-1.0, 1.0, (1,)), num_action_samples=4)
+    stacked = _members(loss, 2)
+
+    def call(params, batch):
+        with params.to_module(loss):
+            return loss(batch)["loss_value"]
+
+    value = torch.vmap(call, (0, None), randomness=loss.vmap_randomness)(stacked, _continuous_batch(0))
+    assert value.shape == (2,) and torch.isfinite(value).all()
+
+
+def _update(loss, keys):
+    optimiser = torch.optim.SGD(loss.parameters(), lr=1e-2)
+
+    def update(batch):
+        out = loss(batch)
+        total = sum(out[key] for key in keys)
+        total.backward()
+        optimiser.step()
+        optimiser.zero_grad()
+        return total.detach()
+
+    return update
+
+
+@pytest.mark.slow
+def test_one_update_breaks_the_graph_no_more_than_dqn_loss_and_compiles_to_the_eager_values():
+    """torch._dynamo.explain of one update (forward, backward, step): at most DQNLoss's graph breaks + 2 (measured:
+    both 2, the backward's); the compiled loss gives the eager values."""
+    dqn, _ = _discrete_pair()
+    torch._dynamo.reset()
+    dqn_breaks = torch._dynamo.explain(_update(dqn, ["loss"]))(_discrete_batch()).graph_break_count
+    loss = _continuous_loss(reward_bound=1.0)
+    torch._dynamo.reset()
+    ours_breaks = torch._dynamo.explain(_update(loss, ["loss_value", "loss_actor"]))(
+        _continuous_batch(0)).graph_break_count
+    assert ours_breaks <= dqn_breaks + 2, (ours_breaks, dqn_breaks)
+    loss = _continuous_loss()
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda batch: loss(batch).select("loss_value", "loss_actor", "q_mean"), backend="aot_eager")
+    for seed in range(2):
+        batch = _continuous_batch(seed)
+        torch.testing.assert_close(compiled(batch.clone()).to_dict(),
+                                   loss(batch.clone()).select("loss_value", "loss_actor", "q_mean").to_dict())
+
+
+# ---------------------------------------------------------------- goal: dtype and device moves
+def _ratio_loss_and_batch():
+    from torchrl_wbrm.modules import DensityRatioNetwork
+    from torchrl_wbrm.objectives import RobustDensityRatioLoss
+
+    torch.manual_seed(0)
+    loss = RobustDensityRatioLoss(DensityRatioNetwork(2, 1, bounds=(0.01, 100.0), num_cells=(8,)))
+    g = torch.Generator().manual_seed(0)
+    batch = TensorDict({
+        "behaviour": TensorDict({"observation": torch.randn(8, 2, generator=g), "action": torch.randn(8, 1, generator=g)}, [8]),
+        "expert": TensorDict({"observation": torch.randn(6, 2, generator=g), "action": torch.randn(6, 1, generator=g)}, [6]),
+    }, [])
+    return loss, batch
+
+
+def _moved_losses_agree(loss, batch, keys, move, cast):
+    before = loss(batch.clone())
+    moved = move(loss)
+    after = moved(cast(batch.clone()))
+    reference = cast(before.select(*keys))
+    for key in keys:
+        assert after[key].dtype == reference[key].dtype and after[key].device == reference[key].device
+        torch.testing.assert_close(after[key].to(before[key]), before[key], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("which", ["bellman", "ratio"])
+def test_double_after_a_forward_clears_every_cache(which):
+    """``loss.double()`` after a first forward, then a float64 batch: the same losses, in float64 (a cache of the
+    network's dtype was once kept past the move)."""
+    if which == "bellman":
+        loss, batch, keys = _continuous_loss(reward_bound=1.0), _continuous_batch(0), ["loss_value", "loss_actor"]
+    else:
+        (loss, batch), keys = _ratio_loss_and_batch(), ["loss_density_ratio"]
+    loss(batch.clone())
+    assert any(k.startswith("_cache_") for k in loss.__dict__)
+    _moved_losses_agree(loss, batch, keys, lambda m: m.double(),
+                        lambda t: t.apply(lambda x: x.double() if x.is_floating_point() else x))
+    assert loss.float()(batch.clone())[keys[0]].dtype == torch.float32
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("which", ["bellman", "ratio"])
+def test_to_device_after_a_forward_clears_every_cache(which):
+    if which == "bellman":
+        loss, batch, keys = _continuous_loss(reward_bound=1.0), _continuous_batch(0), ["loss_value", "loss_actor"]
+    else:
+        (loss, batch), keys = _ratio_loss_and_batch(), ["loss_density_ratio"]
+    loss(batch.clone())
+    _moved_losses_agree(loss, batch, keys, lambda m: m.to("cuda"), lambda t: t.to("cuda"))

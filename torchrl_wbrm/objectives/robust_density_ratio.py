@@ -19,6 +19,7 @@ from torchrl_wbrm.objectives._utils import (
     check_reduction,
     check_same_features,
     check_sign,
+    checks_run,
     get_entry,
     input_width,
 )
@@ -123,6 +124,10 @@ class RobustDensityRatioLoss(LossModule):
     #: How :class:`~torchrl_wbrm.objectives._fast.NetworkCall` calls a plain ratio network: on tensors (``True``) or
     #: through a TensorDict and ``to_module`` (``False``); the same computation either way (tested).
     fast_path: bool = True
+    #: Check the inputs' and ŵ's values (finite, ŵ > 0; host reads) in eager use. They skip themselves inside
+    #: ``torch.compile`` and functorch transforms (``torch.vmap``); ``False`` turns them off everywhere. Every cache
+    #: is ``_cache``-named, so a dtype or device move (``.double()``, ``.to(device)``) drops it.
+    check_inputs: bool = True
 
     def __init__(
         self,
@@ -178,21 +183,21 @@ class RobustDensityRatioLoss(LossModule):
 
     def _network_call(self) -> NetworkCall:
         """How the ratio network is called (cached per network and :attr:`fast_path`)."""
-        cache = self.__dict__.get("_network_call_cache")
+        cache = self.__dict__.get("_cache_network_call")
         if cache is None or cache[0] is not self.ratio_network or cache[1] != self.fast_path:
             call = NetworkCall(self.ratio_network, self.ratio_network_params, self.tensor_keys.density_ratio,
                                why=f"the ratio network's output; its out_keys are {self.ratio_network.out_keys}",
                                direct=self.fast_path)
-            cache = self.__dict__["_network_call_cache"] = (self.ratio_network, self.fast_path, call)
+            cache = self.__dict__["_cache_network_call"] = (self.ratio_network, self.fast_path, call)
         return cache[2]
 
     def _network_facts(self) -> tuple[int | None, torch.dtype | None]:
         """``(input width, parameter dtype)`` of the ratio network (cached per network)."""
-        cache = self.__dict__.get("_facts_cache")
+        cache = self.__dict__.get("_cache_facts")
         if cache is None or cache[0] is not self.ratio_network:
             floats = [p for p in self.ratio_network_params.values(True, True) if p.is_floating_point()]
             cache = (self.ratio_network, input_width(self.ratio_network), floats[0].dtype if floats else None)
-            self.__dict__["_facts_cache"] = cache
+            self.__dict__["_cache_facts"] = cache
         return cache[1], cache[2]
 
     def density_ratio(self, samples: TensorDictBase, name: str) -> torch.Tensor:
@@ -205,8 +210,10 @@ class RobustDensityRatioLoss(LossModule):
         width, dtype = self._network_facts()
         check_input_width(width, named, samples.batch_size, "ratio network")
         check_input_dtype(dtype, named, "ratio network")
-        for k, t in named.items():
-            check_finite(t, k)
+        run_checks = checks_run(self.check_inputs)
+        if run_checks:
+            for k, t in named.items():
+                check_finite(t, k)
         w = self._network_call()(self.ratio_network_params, dict(zip(self.ratio_network.in_keys, tensors)),
                                  samples.batch_size)
         if w.shape not in (samples.batch_size, (*samples.batch_size, 1)):
@@ -214,7 +221,8 @@ class RobustDensityRatioLoss(LossModule):
                 f"The ratio network wrote {key!r} with shape {tuple(w.shape)} on {name!r} samples of batch size "
                 f"{tuple(samples.batch_size)}; expected {tuple(samples.batch_size)} or {(*samples.batch_size, 1)}."
             )
-        check_sign(w, key, strictly_positive=True)
+        if run_checks:
+            check_sign(w, key, strictly_positive=True)
         return w.reshape(samples.batch_size)
 
     def density_ratio_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
