@@ -381,3 +381,50 @@ def test_make_dataset_writes_minari(tmp_path, env_name):
     torch.testing.assert_close(back.expert_samples[:]["observation"].sort(0).values,
                                own.expert_samples[:]["observation"].sort(0).values)
     assert back.metadata["eval_env"] == ("MountainCarContinuous-v0" if env_name == "mountain_car" else None)
+
+
+@pytest.mark.parametrize("env_id,action_shape", [("Pendulum-v1", (1, 1)), ("InvertedPendulum-v5", None)])
+def test_the_vector_env_gives_the_one_by_one_figures(tmp_path, env_id, action_shape):
+    """Evaluation runs every episode at once in a vector env (the policy acts on the batch): each episode's return
+    equals the one of the single env seeded ``seed + i``, to the last bit, whatever the episodes' lengths; an
+    InvertedPendulum policy whose episodes end at different steps checks the end of each episode."""
+    import importlib.util
+
+    from tensordict.nn import TensorDictModule
+
+    from torchrl_wbrm.data.minari_examples import register_reshaped_env
+    from torchrl_wbrm.data.tasks import MinariEvaluator
+    from torchrl_wbrm.evaluation import evaluate_returns
+    from torchrl_wbrm.evaluation.metrics import discounted_returns
+
+    if env_id.startswith("Inverted") and importlib.util.find_spec("mujoco") is None:
+        pytest.skip("needs mujoco")
+    if action_shape is not None:
+        env_id = register_reshaped_env(env_id, action_shape=action_shape)
+        act = np.zeros(action_shape, np.float32)
+    else:
+        act = np.zeros(gym.make(env_id).action_space.shape, np.float32)
+    episodes = collect_gym_episodes(env_id, lambda obs, rng: act + rng.uniform(-1, 1, act.shape).astype(np.float32),
+                                    4, seed=0)
+    write_minari_dataset("vec/expert-v0", episodes, data_path=tmp_path, env=env_id)
+    meta = make_minari_datasets(MinariDataConfig(expert="vec/expert-v0", behaviour="vec/expert-v0",
+                                                 data_path=str(tmp_path))).metadata
+    def act_batch(observation):  # a plain function of the observation, for one or a batch
+        return 0.5 * torch.tanh(3 * observation[..., :1])
+
+    policy = TensorDictModule(act_batch, in_keys=["observation"], out_keys=["action"])
+    single = make_minari_eval_env(meta)
+    one_by_one = []
+    for i in range(5):
+        single.set_seed(11 + i)
+        one_by_one.append(float(discounted_returns(single.rollout(1000, policy), 1.0)))
+    vector = make_minari_eval_env(meta, num_envs=5)
+    assert tuple(vector.batch_size) == (5,)
+    at_once = evaluate_returns(vector, policy, episodes=5, seed=11)
+    assert at_once.mean == pytest.approx(np.mean(one_by_one), abs=1e-9)
+    evaluator = MinariEvaluator(meta)
+    assert evaluator.evaluate(policy, episodes=5, seed=11)["return"] == pytest.approx(np.mean(one_by_one), abs=1e-9)
+    if env_id.startswith("Inverted"):
+        assert len({round(r) for r in one_by_one}) > 1, one_by_one  # episodes of different lengths
+    with pytest.raises(ValueError, match="num_envs must be a positive integer"):
+        make_minari_eval_env(meta, num_envs=0)

@@ -595,8 +595,12 @@ def trusted_env_spec(spec, metadata: dict | None = None):
     return spec
 
 
-def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
+def make_minari_eval_env(metadata: dict, *, seed: int | None = None, num_envs: int | None = None):
     """The torchrl env of the datasets' gymnasium env (``metadata`` of :func:`make_minari_datasets`).
+
+    With ``num_envs``, ``num_envs`` copies in one gymnasium ``SyncVectorEnv`` (batch ``[num_envs]``, auto-reset on
+    the step that ends an episode): a policy acts on the whole batch at once, and ``set_seed(s)`` resets copy ``i``
+    with ``s + i``, so its first episodes are those of the single env seeded ``s + i`` one by one.
 
     The env is ``gymnasium.make`` of the spec recorded in the dataset (as ``MinariDataset.recover_environment``
     does), or of the id ``env.minari.eval_env``, wrapped in torchrl's ``GymWrapper``. Its observation is cast to
@@ -630,17 +634,29 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
             f"gymnasium env to evaluate on: pass env.minari.eval_env=<gymnasium id>."
         )
     recorded = metadata.get("eval_env_spec")
-    genv = gym.make(trusted_env_spec(EnvSpec.from_json(recorded), metadata) if recorded else env_id)
+    spec = trusted_env_spec(EnvSpec.from_json(recorded), metadata) if recorded else env_id
     action_shape = metadata.get("action_shape")
-    if action_shape is not None:
-        if not isinstance(genv.action_space, gym.spaces.Box) or list(genv.action_space.shape) != list(action_shape):
-            raise ValueError(f"The evaluation env {env_id!r} has the action space {genv.action_space}, the Minari "
-                             f"datasets' is {metadata.get('action_space')}.")
-        if len(action_shape) > 1:  # the policy acts flat, as the data were read: reshape its action back (row-major)
-            box = genv.action_space
-            genv = gym.wrappers.TransformAction(
-                genv, lambda a, shape=tuple(box.shape), dtype=box.dtype: np.asarray(a, dtype=dtype).reshape(shape),
-                gym.spaces.Box(box.low.reshape(-1), box.high.reshape(-1), dtype=box.dtype))
+
+    def make_one():
+        genv = gym.make(spec)
+        if action_shape is not None:
+            if not isinstance(genv.action_space, gym.spaces.Box) or list(genv.action_space.shape) != list(action_shape):
+                raise ValueError(f"The evaluation env {env_id!r} has the action space {genv.action_space}, the Minari "
+                                 f"datasets' is {metadata.get('action_space')}.")
+            if len(action_shape) > 1:  # the policy acts flat, as the data were read: reshape it back (row-major)
+                box = genv.action_space
+                genv = gym.wrappers.TransformAction(
+                    genv, lambda a, shape=tuple(box.shape), dtype=box.dtype: np.asarray(a, dtype=dtype).reshape(shape),
+                    gym.spaces.Box(box.low.reshape(-1), box.high.reshape(-1), dtype=box.dtype))
+        return genv
+
+    if num_envs is None:
+        genv = make_one()
+    else:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"make_minari_eval_env: num_envs must be a positive integer, got {num_envs!r}.")
+        make_one().close()  # the checks above, once, before the copies are built
+        genv = gym.vector.SyncVectorEnv([make_one] * num_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     base = GymWrapper(genv, categorical_action_encoding=False, device="cpu")
     transforms = []
     if metadata.get("discrete_actions"):
@@ -653,7 +669,7 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None):
                          f"{base.observation_spec}); a Box observation is needed.")
     if observation.dtype not in (torch.float32, torch.float64):
         transforms.append(DTypeCastTransform(observation.dtype, torch.float32, in_keys=["observation"]))
-    shape = list(observation.shape)
+    shape = list(observation.shape)[len(base.batch_size):]  # without the vector env's batch
     expected = metadata.get("observation_shape")
     if expected is not None and shape != list(expected):
         raise ValueError(f"The evaluation env {env_id!r} has observations of shape {tuple(shape)}, the Minari "

@@ -87,18 +87,27 @@ class MinariTask(Task):
 
 
 class MinariEvaluator(Evaluator):
-    """The mean undiscounted return over episodes of the datasets' gymnasium env, one by one, beside the datasets'
-    own mean episode returns; where the datasets record Minari's reference scores (``ref_min_score``: random actions,
+    """The mean undiscounted return over episodes of the datasets' gymnasium env, all at once in a vector env of as
+    many copies (the policy acts on the whole batch; copy ``i`` reset with ``seed + i``, so the figures are those of
+    the episodes run one by one with those seeds), beside the datasets' own mean episode returns; where the datasets record Minari's reference scores (``ref_min_score``: random actions,
     ``ref_max_score``: the expert), also D4RL's normalised score ``100 (R − ref_min) / (ref_max − ref_min)``. The env is built now, so a missing one fails before training."""
 
     def __init__(self, metadata: dict) -> None:
         super().__init__()
         self.metadata = metadata
-        self.env = make_minari_eval_env(metadata)
+        self.env = make_minari_eval_env(metadata)  # built now: a missing env fails before training
+        self._batched: dict[int, object] = {}  # episodes -> the vector env of as many copies
+
+    def batched_env(self, episodes: int):
+        """The vector env of ``episodes`` copies, built once per size."""
+        if episodes not in self._batched:
+            self._batched[episodes] = make_minari_eval_env(self.metadata, num_envs=episodes)
+        return self._batched[episodes]
 
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         meta = self.metadata
-        res = evaluate_returns(self.env, policy, episodes=episodes, seed=seed,
+        env = self.env if episodes == 1 else self.batched_env(episodes)
+        res = evaluate_returns(env, policy, episodes=episodes, seed=seed,
                                max_steps=meta.get("max_episode_steps") or 1000)
         out = {"return": res.mean, "return_ci": res.half_width, "return_stderr": res.stderr}
         for key in ("behaviour_mean_return", "expert_mean_return"):  # the datasets' own, beside it
