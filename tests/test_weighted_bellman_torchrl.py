@@ -302,3 +302,49 @@ def test_to_device_after_a_forward_clears_every_cache(which):
         (loss, batch), keys = _ratio_loss_and_batch(), ["loss_density_ratio"]
     loss(batch.clone())
     _moved_losses_agree(loss, batch, keys, lambda m: m.to("cuda"), lambda t: t.to("cuda"))
+
+
+# ---------------------------------------------------------------- goal: twin critics
+def test_twin_critics_and_target_smoothing_give_td3_loss_critic_target():
+    """num_qvalue_nets=2 and policy_noise: on the same networks and parameters, with the same seed, the Bellman
+    target is TorchRL TD3Loss's (min over the target critics of Q(x', clamp(μ'(x') + clipped noise))), and the value
+    and actor losses are TD3Loss's (l2)."""
+    from torchrl.objectives import TD3Loss
+
+    spec = Bounded(-1.0, 1.0, (1,))
+    torch.manual_seed(0)
+    q = make_q_network(2, 1, num_cells=(8,), initial_bias=0.0)
+    actor = make_deterministic_actor(2, spec, num_cells=(8,))
+    td3 = TD3Loss(actor, q, action_spec=spec, num_qvalue_nets=2, policy_noise=0.2, noise_clip=0.5, loss_function="l2")
+    ours = WeightedBellmanLoss(q, actor_network=actor, num_qvalue_nets=2, policy_noise=0.2, noise_clip=0.5,
+                               action_spec=spec, use_weights=False)
+    for loss in (td3, ours):
+        loss.make_value_estimator(gamma=GAMMA)
+    first, second = (ours.value_network_params[i]["module", "0", "weight"] for i in (0, 1))
+    assert (first - second).abs().max() > 1e-3  # two critics, initialised apart
+    with torch.no_grad():
+        for p in td3.target_qvalue_network_params.values(True, True):
+            p.add_(0.2 * torch.randn_like(p))
+    pairs = (("value_network_params", "qvalue_network_params"),
+             ("target_value_network_params", "target_qvalue_network_params"),
+             ("actor_network_params", "actor_network_params"),
+             ("target_actor_network_params", "target_actor_network_params"))
+    for name_ours, name_td3 in pairs:
+        getattr(ours, name_ours).data.update_(getattr(td3, name_td3).data)
+    data = _continuous_batch(0).exclude("density_ratio")
+    torch.manual_seed(5)
+    loss_td3, metadata = td3.value_loss(data.clone())
+    torch.manual_seed(5)
+    q_value, target = ours.bellman_error(data.clone())
+    assert q_value.shape == (2, 8)
+    torch.testing.assert_close(target, metadata["target_value"])
+    torch.manual_seed(5)
+    out = ours(data.clone())
+    torch.testing.assert_close(out["loss_value"], loss_td3)
+    torch.testing.assert_close(out["loss_actor"], td3.actor_loss(data.clone())[0])
+    torch.manual_seed(5)
+    unsmoothed = WeightedBellmanLoss(q, actor_network=actor, num_qvalue_nets=2, action_spec=spec, use_weights=False)
+    unsmoothed.make_value_estimator(gamma=GAMMA)
+    for name_ours, name_td3 in pairs:
+        getattr(unsmoothed, name_ours).data.update_(getattr(td3, name_td3).data)
+    assert (unsmoothed.bellman_error(data.clone())[1] - target).abs().max() > 1e-4  # the noise matters here
