@@ -12,7 +12,7 @@
   constant Q (1 by definition of the error, ``RMS(Q̂ − Q*)/std(Q*)``) and of the behaviour policy's exact Q
   (about 4 on expert samples: it is lower than Q* by the behaviour's loss). Where a method does not reach a bar on
   this budget the test is an expected failure (``xfail(strict=True)``: it fails the suite once the method does reach
-  it) and the README reports the measured figure as a finding.
+  it); docs/results/paper_tables.md reports each method's figures at the tables' larger budget.
 """
 from __future__ import annotations
 
@@ -197,7 +197,7 @@ def _learned(algo: str) -> dict:
 
 
 def _finding(reason: str):
-    return pytest.mark.xfail(strict=True, reason=f"finding (README): {reason}")
+    return pytest.mark.xfail(strict=True, reason=f"finding at this test's budget: {reason}")
 
 
 REGRET_CASES = [

@@ -49,10 +49,30 @@ def doctrees(tmp_path_factory):
 
 
 def test_the_site_builds_without_warnings(sphinx, doctrees, tmp_path):
+    """The site builds, and reads as a person needs it: the maths renders offline (MathJax shipped into the site, no
+    script from the network), every figure links to its full-size image, and the stylesheet that wraps or scrolls
+    code blocks and wide tables is loaded on every page."""
     result = _sphinx("html", tmp_path / "html", doctrees)
     assert result.returncode == 0, result.stderr[-4000:]
-    assert (tmp_path / "html" / "index.html").is_file()
-    assert (tmp_path / "html" / "method.html").is_file()
+    html = tmp_path / "html"
+    assert (html / "index.html").is_file()
+    method = (html / "method.html").read_text()
+    scripts = re.findall(r'<script[^>]*src="([^"]+)"', method)
+    assert not [s for s in scripts if re.match(r"(https?:)?//", s)], scripts  # nothing from the network
+    mathjax = [s for s in scripts if "mathjax" in s.lower()]
+    assert mathjax and (html / mathjax[0].split("?")[0]).is_file(), mathjax
+    assert "\\(" in method or "\\[" in method, "the method page has no maths for MathJax to render"
+    shown = 0
+    for page in html.rglob("*.html"):
+        text = page.read_text()
+        assert "_static" in page.parts or "_static/readable.css" in text, f"{page.relative_to(html)} lacks readable.css"
+        for image in re.findall(r'<img [^>]*src="([^"]*_images/[^"]+)"', text):
+            shown += 1
+            assert re.search(rf'<a class="reference internal image-reference" href="{re.escape(image)}"><img ', text), \
+                (page.relative_to(html), image)  # a click opens the full-size image
+    assert shown >= len(list((DOCS / "img").glob("*.png"))), shown
+    css = (DOCS / "_static" / "readable.css").read_text()
+    assert re.search(r"div\.highlight pre \{\s*overflow-x: auto;", css) and "white-space: pre-wrap" in css
 
 
 def test_the_doctests_pass(sphinx, doctrees, tmp_path):
@@ -103,11 +123,38 @@ def test_publish_study_writes_nothing_without_a_docs_dir(tmp_path):
 
 
 def test_every_image_the_docs_and_readme_show_exists():
+    """Markdown images and ``{image}``/``{figure}`` directives; a page shows a figure through a directive with a size
+    (``:scale:``), so that Sphinx links it to its full-size image."""
     for path in [ROOT / "README.md", *DOCS.rglob("*.md")]:
         if "_build" in path.parts:
             continue
-        for target in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", path.read_text()):
+        text = path.read_text()
+        if path.name != "README.md":
+            assert not re.search(r"!\[[^\]]*\]\(", text), f"{path}: show a figure with {{image}} and :scale: 100"
+        for target in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text):
             assert (path.parent / target).is_file(), (path, target)
+        for target, options in re.findall(r"^```\{(?:image|figure)\} (\S+)\n((?::\w+:.*\n)*)", text, re.M):
+            assert (path.parent / target).is_file(), (path, target)
+            assert re.search(r"^:(scale|width):", options, re.M), (path, target, "no size: no link to the full image")
+
+
+def test_each_results_page_states_its_finding_first():
+    """Its first lines, before any command, table or figure: a short paragraph that starts ``**Finding.**``."""
+    for path in sorted((DOCS / "results").glob("*.md")):
+        lines = path.read_text().splitlines()
+        assert lines[0].startswith("# ") and not lines[1] and lines[2].startswith("**Finding.** "), path
+        paragraph = lines[2:lines.index("", 2)]
+        assert len(paragraph) <= 8 and not any(line.startswith(("|", "```", "#")) for line in paragraph), path
+
+
+def test_tests_cite_findings_where_they_are():
+    """An expected failure or a threshold that cites a finding names a page that exists; none cites the README,
+    which holds no per-method findings."""
+    for path in (ROOT / "tests").glob("test_*.py"):
+        text = path.read_text()
+        assert "(" + "README)" not in text, path
+        for cited in re.findall(r"\b(docs/[\w/]+\.md)\b", text):
+            assert (ROOT / cited).is_file(), (path, cited)
 
 
 def test_no_project_history_in_the_readme_or_the_docs():
