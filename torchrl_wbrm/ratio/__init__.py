@@ -15,7 +15,14 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``), the score
   :func:`expert_like_scores` gives each row.
 """
-from torchrl_wbrm.ratio.fitting import DensityRatioFit, DensityRatioFitter, as_tensordict, fit_density_ratio, holdout_split
+from torchrl_wbrm.ratio.fitting import (
+    CategoricalToOneHot,
+    DensityRatioFit,
+    DensityRatioFitter,
+    as_tensordict,
+    fit_density_ratio,
+    holdout_split,
+)
 from torchrl_wbrm.ratio.storing import (
     MissingWeightsError,
     NonFiniteWeightsError,
@@ -26,6 +33,7 @@ from torchrl_wbrm.ratio.storing import (
 from torchrl_wbrm.ratio.weights import episode_weights, expert_like_episodes, expert_like_scores, shape_weights
 
 __all__ = [
+    "CategoricalToOneHot",
     "DensityRatioFit",
     "DensityRatioFitter",
     "MissingWeightsError",

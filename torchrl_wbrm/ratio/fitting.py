@@ -16,7 +16,8 @@ from typing import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
@@ -24,18 +25,58 @@ from torchrl_wbrm.data import PairedSampler, make_replay_buffer
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
 
-__all__ = ["DensityRatioFit", "DensityRatioFitter", "as_tensordict", "fit_density_ratio", "holdout_split"]
+__all__ = ["CategoricalToOneHot", "DensityRatioFit", "DensityRatioFitter", "as_tensordict", "fit_density_ratio",
+           "holdout_split"]
 
 
 def as_tensordict(data: TensorDictBase | ReplayBuffer) -> TensorDictBase:
-    """The samples of a TensorDict (returned as is) or of a replay buffer (its whole storage, ``buffer[:]``)."""
-    if isinstance(data, TensorDictBase):
-        return data
+    """The samples of a TensorDict or of a replay buffer (its whole storage, ``buffer[:]``), one row per sample: a
+    multi-dimensional batch (``[episodes, steps]``, a 2-d storage) is flattened to ``[N]``, a 1-d one returned as
+    is."""
     if isinstance(data, ReplayBuffer):
         if len(data) == 0:
             raise ValueError("The replay buffer is empty.")
-        return data[:]
-    raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(data).__name__}.")
+        data = data[:]
+    elif not isinstance(data, TensorDictBase):
+        raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(data).__name__}.")
+    return data.reshape(-1) if data.batch_dims > 1 else data
+
+
+class CategoricalToOneHot(nn.Module):
+    """Categorical action indices (``[*B]``, or ``[*B, 1]`` with ``keepdim``) as one-hot rows ``[*B, num_actions]``
+    (rows of an identity buffer, so they follow the network's dtype and device). :func:`fit_density_ratio` puts it
+    in front of the ratio network it builds for index actions, so that network reads the data's own actions."""
+
+    def __init__(self, num_actions: int, *, keepdim: bool = False) -> None:
+        super().__init__()
+        self.num_actions, self.keepdim = int(num_actions), bool(keepdim)
+        self.register_buffer("eye", torch.eye(self.num_actions))
+
+    def forward(self, action: torch.Tensor) -> torch.Tensor:
+        index = action.squeeze(-1) if self.keepdim else action
+        return self.eye[index.long()]
+
+    def extra_repr(self) -> str:
+        return f"num_actions={self.num_actions}, keepdim={self.keepdim}"
+
+
+def _categorical_layout(behaviour: TensorDictBase, expert: TensorDictBase, num_actions: int | None,
+                        ) -> tuple[int, bool] | None:
+    """``(num_actions, keepdim)`` where both sets hold integer action indices (``[N]`` or ``[N, 1]``), else ``None``.
+    ``num_actions`` defaults to the largest index seen plus one; an index outside ``[0, num_actions)`` is refused."""
+    actions = [behaviour.get("action"), expert.get("action")]
+    if not all(a is not None and not a.is_floating_point() and a.dtype != torch.bool for a in actions):
+        return None
+    layouts = {a.shape[1:] for a in actions}
+    if layouts not in ({torch.Size([])}, {torch.Size([1])}):
+        raise ValueError(f"Integer 'action' entries of shapes {[tuple(a.shape) for a in actions]}: categorical "
+                         "actions must be one index per row in both sets, shape [N] or [N, 1] (one-hot rows: float).")
+    low = min(int(a.min()) for a in actions)
+    high = max(int(a.max()) for a in actions)
+    n = high + 1 if num_actions is None else int(num_actions)
+    if low < 0 or high >= n:
+        raise ValueError(f"The 'action' indices run from {low} to {high}, outside [0, {n - 1}] for num_actions={n}.")
+    return n, layouts == {torch.Size([1])}
 
 
 def holdout_split(data: TensorDictBase, fraction: float, generator: torch.Generator | None = None, *,
@@ -71,6 +112,8 @@ def _as_inputs(data: TensorDictBase, keys: Sequence[NestedKey], dtype: torch.dty
         raise KeyError(f"The {name} set lacks {missing}, input(s) of the ratio network (its in_keys are "
                        f"{list(keys)}); it holds {sorted(str(k) for k in data.keys(True, True))}.")
     data = data.select(*keys)
+    if data.batch_dims > 1:  # [episodes, steps]: one row per sample
+        data = data.reshape(-1)
     return data.apply(lambda x: x.to(dtype) if x.is_floating_point() and x.dtype != dtype else x)
 
 
@@ -464,6 +507,7 @@ def fit_density_ratio(
     num_cells: Sequence[int] = (128, 128),
     seed: int = 0,
     device: torch.device | str | None = None,
+    num_actions: int | None = None,
     **loss_kwargs,
 ) -> DensityRatioFit:
     """Fit ŵ ≈ dP^e/dP^b on two datasets (TensorDicts or replay buffers of ``"observation"``, ``"action"``) and
@@ -475,6 +519,13 @@ def fit_density_ratio(
     held-out split, the new network's initialisation and the training batches, under a forked torch generator (the
     caller's global random state is left as it was), so the same seed gives the same fit. Float64 data are
     converted to the network's dtype. The defaults are the recipe's stage 1 (``RatioConfig``).
+
+    Any action kind: a float action ``[N, d]`` (continuous, or one-hot rows) is read as it is; integer categorical
+    indices ``[N]`` or ``[N, 1]`` are one-hot encoded inside the network built here (a
+    :class:`CategoricalToOneHot` in front of the :class:`~torchrl_wbrm.modules.DensityRatioNetwork`, so the
+    returned network reads the data's index actions, e.g. in :func:`~torchrl_wbrm.ratio.store_density_ratio`), over
+    ``num_actions`` actions (default: the largest index in either set plus one). Multi-dimensional sets
+    (``[episodes, steps]`` TensorDicts or storages) are flattened to one row per sample.
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps <= 0:
         raise ValueError(f"steps must be a positive integer (gradient steps in all), got {steps!r}.")
@@ -487,8 +538,20 @@ def fit_density_ratio(
                 if b.get(key, None) is None:
                     raise KeyError(f"The behaviour set lacks {key!r}, needed to size the ratio network; pass a "
                                    "ratio_network reading the keys it holds.")
-            ratio_network = DensityRatioNetwork(b["observation"].shape[-1], b["action"].shape[-1],
-                                                bounds=tuple(bounds), num_cells=tuple(num_cells))
+            categorical = _categorical_layout(b, as_tensordict(expert), num_actions)
+            if categorical is None:
+                ratio_network = DensityRatioNetwork(b["observation"].shape[-1], b["action"].shape[-1],
+                                                    bounds=tuple(bounds), num_cells=tuple(num_cells))
+            else:
+                n, keepdim = categorical
+                one_hot = TensorDictModule(CategoricalToOneHot(n, keepdim=keepdim), in_keys=["action"],
+                                           out_keys=[("_one_hot", "action")])
+                ratio_network = TensorDictSequential(
+                    one_hot,
+                    DensityRatioNetwork(b["observation"].shape[-1], n, bounds=tuple(bounds), num_cells=tuple(num_cells),
+                                        in_keys=("observation", ("_one_hot", "action"))),
+                    selected_out_keys=["density_ratio"],
+                )
         if device is not None:
             ratio_network = ratio_network.to(device)
         loss = RobustDensityRatioLoss(ratio_network, alpha=alpha, **loss_kwargs)

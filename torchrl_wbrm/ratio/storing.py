@@ -19,6 +19,8 @@ The weights live in the buffer's storage beside the rows they belong to. Rows wr
 """
 from __future__ import annotations
 
+import warnings
+
 import torch
 from tensordict import MemoryMappedTensor, TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -30,7 +32,10 @@ from torchrl.envs.transforms import Transform
 from torchrl_wbrm.ratio.fitting import as_tensordict
 from torchrl_wbrm.ratio.weights import shape_weights
 
-__all__ = ["MissingWeightsError", "NonFiniteWeightsError", "StoredWeightsFollowRows", "compute_density_ratio",
+#: Below this share of the rows, the stored weights' effective sample size ``(Σw)² / Σw²`` draws a warning.
+TINY_ESS_FRACTION = 0.01
+
+__all__ = ["TINY_ESS_FRACTION", "MissingWeightsError", "NonFiniteWeightsError", "StoredWeightsFollowRows", "compute_density_ratio",
            "store_density_ratio"]
 
 
@@ -122,6 +127,18 @@ def compute_density_ratio(
     return torch.cat([ratio_network(chunk.to(device))[out_key] for chunk in td.split(chunk_size)]).cpu()
 
 
+def _warn_if_tiny_ess(w: torch.Tensor, key: NestedKey, temper: float) -> None:
+    """A warning when the shaped weights' effective sample size is below :data:`TINY_ESS_FRACTION` of the rows."""
+    w = w.reshape(-1).to(torch.float64)
+    ess = float(w.sum() ** 2 / (w**2).sum()) if bool((w > 0).any()) else 0.0
+    if ess < TINY_ESS_FRACTION * w.numel():
+        warnings.warn(
+            f"The weights stored under {key!r} have an effective sample size (Σw)²/Σw² of {ess:.1f} for {w.numel()} "
+            f"rows ({100 * ess / w.numel():.2g}%): a few rows carry every weighted loss. Flatten them with a temper "
+            f"below the {temper:g} used (ratio.temper in the recipe, temper= here; e.g. 0.25) or a clip.",
+            UserWarning, stacklevel=3)
+
+
 def store_density_ratio(
     target: TensorDictBase | ReplayBuffer,
     weights: torch.Tensor | None = None,
@@ -158,8 +175,12 @@ def store_density_ratio(
         dtype (torch.dtype, optional): the stored dtype (defaults to that of the weights).
         chunk_size (int), device: for :func:`compute_density_ratio`.
 
-    Returns: the stored weights (``[N]`` or ``[N, 1]``, on the CPU). Raises :class:`NonFiniteWeightsError` (a
-    ``ValueError``) and stores nothing if the shaped weights are not all finite.
+    Returns: the stored weights (``[N]`` or ``[N, 1]``, on the CPU; a multi-dimensional TensorDict ``[*B]`` gets
+    ``[*B]`` or ``[*B, 1]``, computed over its flattened rows). Raises :class:`NonFiniteWeightsError` (a
+    ``ValueError``) and stores nothing if the shaped weights are not all finite. Warns (``UserWarning``) when their
+    effective sample size ``(Σw)²/Σw²`` is below :data:`TINY_ESS_FRACTION` of the rows, naming ``ratio.temper``.
+    A replay buffer over a multi-dimensional storage is refused (ValueError); a ratio network built by
+    :func:`~torchrl_wbrm.ratio.fit_density_ratio` for categorical index actions reads them as stored.
 
     In a replay buffer the weights follow their rows (:class:`StoredWeightsFollowRows`, appended to the buffer's
     transforms): a row written later by ``extend`` or ``add`` holds no weight (NaN) until ``store_density_ratio``
@@ -179,19 +200,23 @@ def store_density_ratio(
     """
     if isinstance(target, ReplayBuffer):
         storage = target.storage
-        if not isinstance(storage, TensorStorage) or storage.ndim != 1:
-            raise TypeError(f"store_density_ratio needs a replay buffer over a 1-d TensorStorage, got "
+        if not isinstance(storage, TensorStorage):
+            raise TypeError(f"store_density_ratio needs a replay buffer over a TensorStorage, got "
                             f"{type(storage).__name__}.")
+        if storage.ndim != 1:
+            raise ValueError(f"store_density_ratio needs a 1-d storage (one row per transition), got a {storage.ndim}-d "
+                             f"{type(storage).__name__}: build the buffer with ndim=1, or store into a TensorDict of "
+                             "the rows (a multi-dimensional TensorDict is flattened).")
         n = len(storage)
         if n == 0:
             raise ValueError(f"The replay buffer is empty: there are no rows to store weights under {key!r} for; "
                              "extend it with the transitions first.")
         rows = storage._storage[:n]
     elif isinstance(target, TensorDictBase):
-        if target.batch_dims == 0 or target.shape[0] == 0:
+        if target.batch_dims == 0 or target.batch_size.numel() == 0:
             raise ValueError(f"The TensorDict has batch size {tuple(target.batch_size)}: there are no rows to store "
                              f"weights under {key!r} for.")
-        n, rows = target.shape[0], target
+        n, rows = target.batch_size.numel(), as_tensordict(target)  # [episodes, steps]: flattened, one row per sample
     else:
         raise TypeError(f"Expected a TensorDict or a torchrl ReplayBuffer, got {type(target).__name__}.")
     if weights is None:
@@ -201,6 +226,9 @@ def store_density_ratio(
     elif ratio_network is not None:
         raise ValueError("Pass the raw weights or a ratio_network, not both.")
     weights = torch.as_tensor(weights)
+    if isinstance(target, TensorDictBase) and target.batch_dims > 1 and weights.shape[:target.batch_dims] == \
+            target.batch_size and weights.numel() == n:
+        weights = weights.reshape(n)  # one weight per row of a multi-dimensional TensorDict, given in its shape
     if not weights.is_floating_point():  # counts or 0/1 weights: shaped (divided by their mean) as floats
         weights = weights.to(torch.get_default_dtype())
     if tuple(weights.shape) not in ((n,), (n, 1)):
@@ -209,10 +237,12 @@ def store_density_ratio(
     w = shape_weights(weights, temper=temper, clip=clip, mix=mix, self_normalise=self_normalise)
     if not bool(torch.isfinite(w).all()):
         raise NonFiniteWeightsError(key, float(w[~torch.isfinite(w)][0]))
+    _warn_if_tiny_ess(w, key, temper)
     w = w.reshape(n, 1) if keepdim else w.reshape(n)
     if dtype is not None:
         w = w.to(dtype)
     if isinstance(target, TensorDictBase):
+        w = w.reshape(*target.batch_size, *w.shape[1:])
         target.set(key, w)
         return w
     data = storage._storage
