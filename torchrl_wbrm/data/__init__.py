@@ -11,6 +11,7 @@ from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, cached_offline_datas
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, write_minari_dataset
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
+from torchrl_wbrm.data.torchrl_minari import minari_replay_buffer
 
 __all__ = [
     "ENV_KINDS",
@@ -29,6 +30,7 @@ __all__ = [
     "MinariDataConfig",
     "make_minari_datasets",
     "write_minari_dataset",
+    "minari_replay_buffer",
     "MountainCarDataConfig",
     "make_mountain_car_datasets",
 ]
