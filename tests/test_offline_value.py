@@ -11,7 +11,7 @@ from torch import nn
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.envs import LQREnv
 from torchrl_wbrm.evaluation.lqr_policy_value import linear_policy_q, linear_policy_value
-from torchrl_wbrm.evaluation.offline_value import (
+from torchrl_wbrm.ope.offline_value import (
     TIME_LEFT_KEY,
     estimate_offline_value,
     initial_rows,
