@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import os
 import re
+import subprocess
 import sys
 
 import pytest
@@ -150,3 +152,21 @@ def test_the_readme_says_how_its_sample_output_and_its_headline_differ():
     wbrm = re.search(r"^\| wbrm \| ([^|]+) \|", fragment, re.M).group(1).strip()
     assert f"| WBRM (`algo=wbrm`) | {wbrm} |" in readme, wbrm
     assert "Seeds: 5 (0–4)." in fragment
+
+
+@pytest.mark.slow
+def test_the_dataset_tables_the_few_demonstrations_page_shows_are_what_the_benchmark_command_prints(tmp_path):
+    """The page shows the benchmark command's per-dataset table for Pendulum and LunarLander "as the command prints
+    it": the command (``python -m torchrl_wbrm.data.benchmark --tasks pendulum lunar_lander``, data written under
+    the test's own directory) prints each of those rows, and the page shows each row it prints. About 60 s of CPU."""
+    page = (ROOT / "docs" / "results" / "few_demonstrations.md").read_text()
+    assert "Pendulum-v1, as the command prints it:" in page and "the same command with `--tasks lunar_lander`" in page
+    pattern = r"^\| benchmark/(?:pendulum|lunar_lander)/[\w-]+ \|.*\|$"
+    shown = re.findall(pattern, page, re.M)
+    assert len(shown) == 14, shown
+    argv = example_outputs.argv_of(
+        f"python -m torchrl_wbrm.data.benchmark --data-path {tmp_path / 'data'} --tasks pendulum lunar_lander")
+    proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    printed = re.findall(pattern, proc.stdout, re.M)
+    assert sorted(printed) == sorted(shown), "\n".join(sorted(set(printed) ^ set(shown)))
