@@ -10,6 +10,7 @@ column. Minari runs get the normalised score as well; ``--per-seed`` lists one m
 from __future__ import annotations
 
 import argparse
+import sys
 
 from torchrl_wbrm.training.reporting import load_results, results_table, split_by_status
 
@@ -35,7 +36,11 @@ def main() -> None:
                         help="also list this metric's value seed by seed (with the step delivered by q.select and "
                              "the run's flags), e.g. 'normalised score'")
     args = parser.parse_args()
-    records = load_results(args.root)
+    try:
+        records = load_results(args.root)
+    except (ValueError, FileNotFoundError, OSError) as err:  # a damaged results.json, none at all: one line
+        print(f"summarise: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)
     finished, other = split_by_status(records)
     if any("regret" in r.get("final", {}) for r in records):
         metrics = LQR_METRICS

@@ -319,7 +319,7 @@ def test_every_algo_has_a_plot_title():
     "overrides, named",
     [
         ({"seed": -1}, "seed must be >= 0, got -1"),
-        ({"eval": {"q_samples": 0}}, "eval.q_samples must be > 0"),
+        ({"eval": {"q_samples": 0}}, "eval.q_samples must be >= 2"),
         ({"env": {"lqr_data": {"parallel_envs": 0}}}, "env.lqr_data.parallel_envs must be >= 1, got 0"),
         ({"threads": -1}, "threads must be >= 1 or null"),
         ({"q": {"lr": math.inf}}, "q.lr=inf: every number in the config must be finite"),

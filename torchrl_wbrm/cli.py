@@ -118,8 +118,13 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     except RunInterrupted as err:
         print(err, file=sys.stderr)
         sys.exit(err.exit_code)
+    except OSError as err:  # a full or read-only disk, the run directory removed: one line, the file and the disk
+        _stopped_on(err, cfg, run_dir)
     results["wall_seconds"] = time.perf_counter() - start
-    write_json(run_dir / "results.json", results)
+    try:
+        write_json(run_dir / "results.json", results)
+    except OSError as err:
+        _stopped_on(err, cfg, run_dir)
     if results.get("status") == "diverged":
         print(results["diverged"]["message"], file=sys.stderr)
         print(f"run directory: {run_dir} (results.json has status 'diverged'; checkpoint.pt is the last finite state)",
@@ -127,6 +132,21 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
         sys.exit(2)
     print(summarise(results))
     print(f"run directory: {run_dir}")
+
+
+def _stopped_on(err: OSError, cfg, run_dir: Path) -> None:
+    """A run stopped by the file system (a full or read-only disk, its directory removed): one line naming the file
+    and why (the traceback only with ``verbose=true``), exit status 1."""
+    if cfg.verbose:
+        import traceback
+
+        traceback.print_exc()
+    where = f" ({err.filename})" if getattr(err, "filename", None) and str(err.filename) not in str(err) else ""
+    checkpoint = run_dir / "checkpoint.pt"
+    kept = (f" {checkpoint} holds the last checkpoint; resume with: {stops.resume_command(run_dir)}"
+            if checkpoint.is_file() else "")
+    print(f"Stopped: {' '.join(str(err).split())}{where}.{kept}", file=sys.stderr)
+    sys.exit(1)
 
 
 def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
@@ -147,6 +167,8 @@ def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
     except KeyboardInterrupt:
         print(f"Interrupted. {resume}", file=sys.stderr)
         sys.exit(130)
+    except OSError as err:
+        _stopped_on(err, cfg, run_dir)
     print(summarise_seeds(results))
     print(f"run directory: {run_dir}")
     if results["seeds_diverged"]:

@@ -13,10 +13,12 @@ over a ``LazyTensorStorage`` (or a ``LazyMemmapStorage`` for data larger than me
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
 import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -355,9 +357,16 @@ class OfflineDatasets:
         """
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
+        sets = {name: getattr(self, name)[:] for name in PARTS}
+        needed = sum(v.numel() * v.element_size() for td in sets.values() for v in td.values(True, True))
+        free = shutil.disk_usage(path).free
+        if free < needed + (1 << 20):  # refused before a memory-mapped write runs past the disk's end (SIGBUS)
+            raise OSError(errno.ENOSPC, f"Saving the dataset to {path} needs {needed / 2**20:.1f} MiB; the disk holding "
+                                        f"it has {free / 2**20:.1f} MiB free. Free space there, or choose another "
+                                        f"folder (data_cache=..., out=...).")
         files = {}
         for name in PARTS:
-            td = getattr(self, name)[:]
+            td = sets[name]
             td.memmap(path / name)
             entries = {}
             for key in td.keys(True, True):
@@ -455,14 +464,21 @@ def files_key(*paths: str | os.PathLike) -> tuple:
     return tuple(out)
 
 
+#: The largest magnitude a number of the data may have: its square, and so every squared loss on it, stays finite in
+#: float32 (``sqrt(3.4e38)``, about ``1.8e19``).
+MAX_MAGNITUDE = float(torch.finfo(torch.float32).max) ** 0.5
+
+
 def first_non_finite_row(td: TensorDictBase) -> tuple[str, int, float] | None:
-    """The first row of ``td`` (a flat set) holding a NaN or infinite number, as ``(key, row, value)`` (the first
-    such key, in key order, of the first such row), or ``None``."""
+    """The first row of ``td`` (a flat set) holding a NaN or infinite number, or one beyond :data:`MAX_MAGNITUDE`
+    (whose square overflows float32), as ``(key, row, value)`` (the first such key, in key order, of the first such
+    row), or ``None``."""
     first = None
     for key, value in td.items(True, True):
         if not value.is_floating_point() or value.ndim == 0:
             continue
-        bad = ~torch.isfinite(value.reshape(value.shape[0], -1))
+        flat = value.reshape(value.shape[0], -1)
+        bad = ~torch.isfinite(flat) | (flat.double().abs() > MAX_MAGNITUDE)
         rows = bad.any(-1).nonzero()
         if rows.numel() and (first is None or int(rows[0]) < first[1]):
             row = int(rows[0])
@@ -486,6 +502,10 @@ def check_finite(td: TensorDictBase, where: str) -> None:
         where_in = f"episode {episode}, step {step} (row {row})"
     else:
         where_in = f"row {row}"
+    if math.isfinite(value):
+        raise ValueError(f"{where}: {where_in}: {key!r} is {value:.3g}, beyond {MAX_MAGNITUDE:.3g} in magnitude: its "
+                         f"square overflows float32, so every loss on it would (fix or drop that episode, or rescale "
+                         f"the data, then save the dataset again).")
     raise ValueError(f"{where}: {where_in}: {key!r} is {value}; every observation, action and reward must be finite "
                      f"(fix or drop that episode, then save the dataset again).")
 

@@ -40,6 +40,7 @@ episodes (``recipes/make_dataset.py format=minari``).
 from __future__ import annotations
 
 import contextlib
+import json
 import io
 import os
 import warnings
@@ -51,7 +52,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_wbrm.data.datasets import HeldRead, OfflineDatasets, episode_returns, files_key, min_behaviour_episodes
+from torchrl_wbrm.data.datasets import (MAX_MAGNITUDE, HeldRead, OfflineDatasets, episode_returns, files_key,
+                                        min_behaviour_episodes)
 
 __all__ = [
     "MinariDataConfig",
@@ -189,9 +191,21 @@ def delete_minari_datasets(dataset_ids: Iterable[str], data_path: str | os.PathL
 
 
 def _open(ref: str, data_path=None):
+    """The ``MinariDataset`` ``ref``; a dataset whose files cannot be read (a truncated ``metadata.json`` or HDF5
+    file) is a one-line ``ValueError`` naming the dataset and its folder."""
     from minari.dataset.minari_dataset import MinariDataset
 
-    return MinariDataset(str(resolve_minari_dataset(ref, data_path)))
+    path = resolve_minari_dataset(ref, data_path)
+    try:
+        return MinariDataset(str(path))
+    except (ValueError, OSError, KeyError, TypeError, json.JSONDecodeError) as err:
+        raise ValueError(_damaged(ref, path, err)) from None
+
+
+def _damaged(ref: str, path: Path, err: BaseException) -> str:
+    first = " ".join(str(err).split())[:200] or type(err).__name__
+    return (f"Minari dataset {ref!r} ({path}) cannot be read: its files are damaged or truncated ({type(err).__name__}: "
+            f"{first}); write or download it again.")
 
 
 def _check_given(data: MinariDataConfig) -> None:
@@ -218,6 +232,10 @@ def _check_spaces(observation_space, action_space, where: str) -> None:
                          f"supported.")
     if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
         raise ValueError(f"{where}: the action space is {action_space}; only a Box or a Discrete is supported.")
+    if isinstance(action_space, spaces.Box) and not (np.isfinite(action_space.low).all()
+                                                     and np.isfinite(action_space.high).all()):
+        raise ValueError(f"{where}: the action space {action_space} is unbounded; actions are scaled to and sampled "
+                         f"from a bounded Box, so record the env's finite action bounds in the dataset.")
 
 
 def _action_tensor(actions: np.ndarray, action_space) -> torch.Tensor:
@@ -238,6 +256,37 @@ def _first_non_finite(values: np.ndarray) -> int | None:
     return int(np.argmax(bad)) if bad.any() else None
 
 
+def _first_too_large(values: np.ndarray) -> int | None:
+    """The first row (step) of ``values`` holding a number beyond :data:`MAX_MAGNITUDE`, or ``None``."""
+    if values.dtype.kind not in "fciu" or not values.size:
+        return None
+    big = (np.abs(values.reshape(values.shape[0], -1).astype(np.float64)) > MAX_MAGNITUDE).any(-1)
+    return int(np.argmax(big)) if big.any() else None
+
+
+def _check_observation_range(observations: np.ndarray, space, name: str, episode: int) -> None:
+    """Refuse observations far outside the dataset's declared observation ``space`` (a ``Box``): beyond its finite
+    bounds by more than the bounds' own width (a gross mismatch, such as observations recorded 100× the env's scale),
+    naming the dataset, the episode and the first such step. Observations slightly outside pass."""
+    from gymnasium import spaces
+
+    if not isinstance(space, spaces.Box) or observations.dtype.kind not in "fiu" or not observations.size:
+        return
+    low = np.broadcast_to(space.low, space.shape).reshape(-1).astype(np.float64)
+    high = np.broadcast_to(space.high, space.shape).reshape(-1).astype(np.float64)
+    flat = observations.reshape(observations.shape[0], -1).astype(np.float64)
+    if flat.shape[1] != low.size:
+        return  # the shape is refused by the reader, naming it
+    finite = np.isfinite(low) & np.isfinite(high)
+    width = np.where(finite, high - low, 0.0)
+    outside = (finite & ((flat < low - width) | (flat > high + width))).any(-1)
+    if outside.any():
+        step = int(np.argmax(outside))
+        raise ValueError(f"{name}: episode {episode}, step {step}: the observation {flat[step].tolist()} lies far "
+                         f"outside the dataset's observation space {space} (beyond its bounds by more than their "
+                         f"width); the data and the env they declare do not match (fix the space or the data).")
+
+
 def _check_episode(episode, action_space, name: str) -> None:
     """Refuse an episode with a NaN or infinite observation, action or reward, or an action outside
     ``action_space``: a ``ValueError`` naming the dataset (``name``), the episode, the first such step and the key."""
@@ -253,7 +302,17 @@ def _check_episode(episode, action_space, name: str) -> None:
         if step is not None:
             raise ValueError(f"{where}, step {step}: {key} hold {values[step].tolist()}; every observation, action and "
                              f"reward must be finite (fix or drop that episode).")
+        step = _first_too_large(values) if values.ndim else None
+        if step is not None:
+            raise ValueError(f"{where}, step {step}: {key} hold {values[step].tolist()}, beyond {MAX_MAGNITUDE:.3g} in "
+                             f"magnitude: its square overflows float32, so every loss on it would (fix or drop that "
+                             f"episode, or rescale the data).")
         arrays[key] = values
+    if arrays["rewards"].size:
+        total = np.abs(arrays["rewards"].astype(np.float64)).sum()
+        if total > MAX_MAGNITUDE:
+            raise ValueError(f"{where}: its rewards sum to {total:.3g} in magnitude, beyond {MAX_MAGNITUDE:.3g}: the "
+                             f"episode's return and every value on it overflow float32 (rescale the rewards).")
     actions, steps = arrays["actions"], len(arrays["rewards"])
     if actions.shape[:1] != (steps,):
         raise ValueError(f"{where}: {actions.shape[0] if actions.ndim else 0} actions for {steps} rewards; one "
@@ -293,11 +352,12 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0, name: str | Non
     """
     name = name or f"Minari dataset {dataset.spec.dataset_id!r}"
     parts = []
-    for episode in dataset.iterate_episodes():
+    for episode in _episodes_of(dataset, name):
         steps = len(episode.rewards)
         if steps == 0:
             continue
         _check_episode(episode, dataset.action_space, name)
+        _check_observation_range(np.asarray(episode.observations), dataset.observation_space, name, episode.id)
         obs = torch.as_tensor(np.asarray(episode.observations, dtype=np.float32))
         if tuple(obs.shape[1:]) != tuple(dataset.observation_space.shape):
             raise ValueError(f"{name}: episode {episode.id} has observations of shape {tuple(obs.shape[1:])}, but the "
@@ -323,6 +383,21 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0, name: str | Non
         raise ValueError(f"{name} holds no steps ({dataset.total_episodes} episodes): it is empty; give a dataset with "
                          f"data.")
     return torch.cat(parts, 0)
+
+
+def _episodes_of(dataset, name: str):
+    """``dataset.iterate_episodes()``, a file that cannot be read (a truncated HDF5) a one-line ``ValueError``."""
+    episodes = iter(dataset.iterate_episodes())
+    while True:
+        try:
+            episode = next(episodes)
+        except StopIteration:
+            return
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            first = " ".join(str(err).split())[:200] or type(err).__name__
+            raise ValueError(f"{name}: its data cannot be read: the files are damaged or truncated "
+                             f"({type(err).__name__}: {first}); write or download the dataset again.") from None
+        yield episode
 
 
 def _space_text(space) -> str:
@@ -426,8 +501,60 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
             if spec is not None:
                 trusted_env_spec(spec, {"expert_dataset": data.expert})
                 break
+    check_eval_env(data, *pair)
     if keep:
         _HELD_PAIR.hold(key, pair)
+
+
+def check_eval_env(data: MinariDataConfig, expert_ds, behaviour_ds, expert: TensorDictBase,
+                   behaviour: TensorDictBase) -> None:
+    """Refuse, before anything is written, an evaluation env whose figures would not compare with the data's: an id
+    gymnasium does not know, observations or actions of another shape, action bounds other than the datasets' (a
+    policy trained on the data's range would be clipped by the env), or a time limit (``max_episode_steps``) shorter
+    than the data's longest episode (its returns would be of shorter episodes than the data's). The env is
+    ``env.minari.eval_env``, else the one the datasets record (nothing is checked when neither names one). One line
+    naming the env, the setting and what differs."""
+    import gymnasium as gym
+    from gymnasium import spaces
+
+    from gymnasium.envs.registration import EnvSpec
+
+    recorded = None if data.eval_env else _recorded_spec_json(expert_ds, behaviour_ds)
+    env_id = data.eval_env or _recorded_env_id(expert_ds) or _recorded_env_id(behaviour_ds)
+    if not env_id:
+        return
+    where = (f"env.minari.eval_env={data.eval_env}" if data.eval_env
+             else f"the evaluation env {env_id!r} the Minari datasets record")
+    try:
+        genv = gym.make(EnvSpec.from_json(recorded) if recorded else env_id)
+    except Exception as err:  # noqa: BLE001 (gymnasium's Error for an unknown id, a missing simulator, ...)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(f"{where}: the env cannot be made ({type(err).__name__}: {first}); pass "
+                         f"env.minari.eval_env=<a registered gymnasium id> of the env the data come from.") from None
+    try:
+        data_obs, data_act = expert_ds.observation_space, expert_ds.action_space
+        if tuple(genv.observation_space.shape or ()) != tuple(data_obs.shape or ()):
+            raise ValueError(f"{where}: its observations have the shape {genv.observation_space.shape}, the Minari "
+                             f"datasets' {data_obs.shape} ({data_obs}); evaluate on the env the data come from.")
+        if type(genv.action_space) is not type(data_act) or (
+                isinstance(data_act, spaces.Box) and tuple(genv.action_space.shape) != tuple(data_act.shape)):
+            raise ValueError(f"{where}: its action space is {genv.action_space}, the Minari datasets' {data_act}; "
+                             f"evaluate on the env the data come from.")
+        if isinstance(data_act, spaces.Box) and not (
+                np.allclose(genv.action_space.low, data_act.low) and np.allclose(genv.action_space.high, data_act.high)):
+            raise ValueError(f"{where}: its action bounds {genv.action_space} differ from the Minari datasets' "
+                             f"{data_act}: a policy trained on the data's range would be clipped by the env, and its "
+                             f"returns would not be the data's policy's. Record the env's own action space in the "
+                             f"datasets, or evaluate on an env with the data's bounds.")
+        limit = genv.spec.max_episode_steps if genv.spec is not None else None
+        longest = max(int(torch.unique(td["episode"], return_counts=True)[1].max()) for td in (expert, behaviour))
+        if limit is not None and limit < longest:
+            raise ValueError(f"{where}: it ends episodes after {limit} steps (max_episode_steps), but the Minari "
+                             f"datasets hold episodes of {longest} steps: evaluation returns would be of shorter "
+                             f"episodes than the data's. Record the env's real time limit in the datasets, or pass "
+                             f"env.minari.eval_env=<id> of an env with it.")
+    finally:
+        genv.close()
 
 
 def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str = "lazy",

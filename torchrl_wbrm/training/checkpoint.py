@@ -106,7 +106,24 @@ def read_checkpoint(path: Path) -> dict:
     missing = [k for k in CHECKPOINT_KEYS if not isinstance(sd, dict) or k not in sd]
     if missing:
         raise RuntimeError(f"Cannot resume: {path} is not a complete checkpoint (it lacks {missing}).")
+    for key, kind in _CHECKPOINT_TYPES.items():
+        if not isinstance(sd[key], kind):
+            raise RuntimeError(f"Cannot resume: {path} is not a checkpoint this project wrote: its {key!r} is a "
+                               f"{type(sd[key]).__name__}, not a {' or '.join(k.__name__ for k in _as_tuple(kind))}.")
+    state = sd["state"]
+    if not (isinstance(state.get("stage"), str) and isinstance(state.get("step"), int)):
+        raise RuntimeError(f"Cannot resume: {path} is not a checkpoint this project wrote: its 'state' is {state!r}, "
+                           f"not a stage and a step.")
     return sd
+
+
+#: the type of each entry of a checkpoint :meth:`WBRMTrainer.state_dict` writes
+_CHECKPOINT_TYPES = {"state": dict, "history": list, "rng": dict, "q_loss": dict, "config": dict,
+                     "data_fingerprint": (str, int, float)}
+
+
+def _as_tuple(kind) -> tuple:
+    return kind if isinstance(kind, tuple) else (kind,)
 
 
 def data_fingerprint(datasets) -> str:

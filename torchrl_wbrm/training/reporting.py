@@ -163,10 +163,14 @@ def load_results(root, *, finished_only: bool = False) -> list[dict]:
     seed_paths = {id(run): path.parent / f"seed{run['seed']}" / "results.json"
                   for path, record in loaded if record.get("kind") == "seeds" for run in record.get("runs", [])}
     covered = {p.resolve() for p in seed_paths.values()}
+    # a seed<s>/ folder beside a multi-seed run's record that the record does not list is not one of its runs
+    multi = {path.parent.resolve() for path, record in loaded if record.get("kind") == "seeds"}
     records = []
     for path, record in loaded:
         if record.get("kind") == "seeds":
             records.extend({**run, "_path": str(seed_paths[id(run)])} for run in record.get("runs", []))
+        elif path.parent.parent.resolve() in multi and path.parent.name.startswith("seed"):
+            continue
         elif path.resolve() not in covered:
             record.setdefault("_path", str(path))
             records.append(record)

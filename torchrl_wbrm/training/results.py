@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["TEST_PAUSE_ENV", "atomic_write", "create_fresh", "json_safe", "pause_for_test", "write_json"]
+__all__ = ["TEST_PAUSE_ENV", "WriteFailed", "atomic_write", "create_fresh", "json_safe", "pause_for_test", "write_json"]
 
 
 def json_safe(obj):
@@ -94,6 +94,28 @@ def create_fresh(path: str | os.PathLike, mode: str = "wb"):
     return os.fdopen(fd, mode)
 
 
+class WriteFailed(OSError):
+    """A file could not be written (:func:`atomic_write`): the message names the file, why, and the free space on its
+    disk; the partial temporary file is removed, and the file written before, if any, is kept whole."""
+
+    def __init__(self, path: Path, err: BaseException) -> None:
+        import shutil
+
+        path = Path(path)
+        reason = getattr(err, "strerror", None) or " ".join(str(err).split())[:160] or type(err).__name__
+        try:
+            usage = shutil.disk_usage(path.parent)
+            disk = f"{usage.free / 2**20:.1f} MiB free of {usage.total / 2**20:.1f} MiB on the disk holding {path.parent}"
+        except OSError:
+            disk = f"{path.parent} cannot be read"
+        self.message = (f"Could not write {path}: {reason} ({disk}); the partial file was removed and the earlier "
+                        f"{path.name}, if any, is kept.")
+        super().__init__(getattr(err, "errno", None) or 0, self.message)
+
+    def __str__(self) -> str:
+        return self.message
+
+
 def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
     """Replace ``path`` with what ``write(file)`` writes, atomically: the content goes to ``tmp`` (default
     ``<path>.tmp``, in the same directory), is flushed and fsynced, then renamed over ``path`` (``os.replace``) and
@@ -103,10 +125,17 @@ def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
     replaces a link at ``path`` itself, not its target."""
     path = Path(path)
     tmp = Path(tmp) if tmp is not None else path.with_name(path.name + ".tmp")
-    with create_fresh(tmp) as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with create_fresh(tmp) as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as err:  # a full disk, a read-only one, a folder removed (torch.save: RuntimeError)
+        try:
+            os.unlink(tmp)  # no partial temporary file is left behind
+        except OSError:
+            pass
+        raise WriteFailed(path, err) from err
     _REPLACED[path.name] = _REPLACED.get(path.name, 0) + 1
     pause_for_test(f"{path.name}:{_REPLACED[path.name]}")
     os.replace(tmp, path)

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.training.checkpoint import read_checkpoint
 from torchrl_wbrm.training.config import config_as_dict, config_schema
+from torchrl_wbrm.training.validation import check_writable_folder
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, holds_run, refuse_links
 
 __all__ = ["CONFIG_GROUPS", "CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES",
@@ -239,6 +240,7 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
         claim = claim or claim_run_dir(run_dir)
         try:
             refuse_links(run_dir)
+            check_writable_folder(run_dir, "resume")
         except BaseException:
             claim.release()
             raise
@@ -250,6 +252,7 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     try:
         if resume or not (cfg.overwrite and holds_run(run_dir)):  # overwrite=true removes the earlier outputs
             refuse_links(run_dir)
+        check_writable_folder(run_dir, "resume" if resume else "the run directory")
         if resume:
             sd = read_checkpoint(path)
             check_resume_config(path, dict(sd["config"]), config_as_dict(cfg, task), sd["state"])

@@ -5,13 +5,15 @@ sizes, threads, the device, the logger and what the env's task supports (:func:`
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import fields, is_dataclass
 
 import torch
 
 from torchrl_wbrm.data.tasks import get_task
 
-__all__ = ["SEED_LIMIT", "check_device", "check_logger", "check_seeds", "validate_run_settings"]
+__all__ = ["SEED_LIMIT", "check_device", "check_logger", "check_seeds", "check_writable_folder",
+           "validate_run_settings"]
 
 
 def _leaves(node, prefix: str = ""):
@@ -93,6 +95,31 @@ def check_seeds(cfg) -> None:
         seen[seed] = seed
 
 
+def check_writable_folder(path, key: str) -> None:
+    """Refuse, naming ``key``, a folder a run writes into that cannot be written: the folder itself if it exists,
+    else the nearest existing folder above it (read-only file system, permissions)."""
+    from pathlib import Path
+
+    folder = Path(path).absolute()
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"{key}={path}: {probe} is not a folder.")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"{key}={path}: {probe} cannot be written (a read-only file system or its permissions); choose "
+                         f"a folder this user can write.")
+    statvfs = getattr(os, "statvfs", None)
+    if statvfs is not None:
+        try:
+            read_only = bool(statvfs(probe).f_flag & getattr(os, "ST_RDONLY", 1))
+        except OSError:
+            read_only = False
+        if read_only:
+            raise ValueError(f"{key}={path}: {probe} lies on a read-only file system; choose a folder this user can "
+                             f"write.")
+
+
 def validate_run_settings(cfg, task=None) -> None:
     """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
     data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports.
@@ -101,8 +128,9 @@ def validate_run_settings(cfg, task=None) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"{key}={value!r}: every number in the config must be finite.")
     check_seeds(cfg)
-    if not cfg.eval.q_samples > 0:
-        raise ValueError(f"eval.q_samples must be > 0 (the samples of the Q* and ratio errors), got {cfg.eval.q_samples!r}.")
+    if not cfg.eval.q_samples >= 2:
+        raise ValueError(f"eval.q_samples must be >= 2 (the samples of the Q* and ratio errors, which are relative to "
+                         f"Q*'s spread over them: one sample has none), got {cfg.eval.q_samples!r}.")
     if cfg.threads is not None and not cfg.threads >= 1:
         raise ValueError(f"threads must be >= 1 or null (torch's default), got {cfg.threads!r}.")
     if not cfg.checkpoint_every >= 0:
@@ -113,4 +141,6 @@ def validate_run_settings(cfg, task=None) -> None:
         raise ValueError(f"q.num_action_samples must be >= 1, got {cfg.q.num_action_samples!r}.")
     check_device(cfg.device)
     check_logger(cfg.logger)
+    if cfg.data_cache:
+        check_writable_folder(cfg.data_cache, "data_cache")
     (task if task is not None else get_task(cfg.env)).validate()  # the env's data settings, and what its ground truth supports
