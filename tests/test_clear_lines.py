@@ -395,3 +395,30 @@ def test_wandbs_data_and_cache_folders_go_under_the_run_directory(tmp_path, monk
     monkeypatch.setenv("WANDB_CACHE_DIR", "/the/users/own")
     logging_module._wandb_dirs_under(tmp_path / "third")
     assert os.environ["WANDB_CACHE_DIR"] == "/the/users/own"
+
+
+@pytest.mark.slow
+def test_a_wandb_run_writes_nothing_of_wandbs_under_home(tmp_path, monkeypatch):
+    """``logger=wandb`` (offline), with plots and the results table: wandb's staging copies, cache and debug logs
+    are under the run directory, nothing of wandb's under ``$HOME``."""
+    import wandb
+
+    from torchrl_wbrm.training import logging as logging_module
+
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    for var in ("WANDB_DATA_DIR", "WANDB_CACHE_DIR", "WANDB_DIR", "WANDB_CONFIG_DIR"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(logging_module, "_WANDB_DIRS_SET", {})
+    run = tmp_path / "run"
+    try:
+        results = WBRMTrainer(tiny(logger={"backend": "wandb", "log_every": 5}, plots=True, q={"steps": 20}), run,
+                              progress=False).run()
+    finally:
+        if wandb.run is not None:
+            wandb.finish()
+    assert results["status"] == "finished"
+    assert [p for p in home.rglob("*") if "wandb" in str(p.relative_to(home)).lower()] == []
+    assert list((run / "wandb").glob("offline-run-*")) and (run / "wandb" / "debug.log").is_file()
