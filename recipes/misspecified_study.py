@@ -2,7 +2,7 @@
 Q everywhere, scored against exact answers.
 
     python recipes/misspecified_study.py                 # the study: 10 seeds, both behaviours (one process, 1 thread)
-    python recipes/misspecified_study.py --quick         # a smoke version (seconds)
+    python recipes/misspecified_study.py --quick         # a smoke version (two classes, tiny data; CI runs it)
     python recipes/misspecified_study.py --seeds 10 --first-seed 10 --out <new>   # fresh seeds 10-19
 
 Per seed and behaviour: LQR exp1; D = 1,000 behaviour episodes (a = −0.5 K x + N(0, 1)) starting from x₀ ∼ N(0, I)
@@ -39,7 +39,7 @@ BEHAVIOURS = {"near (x₀ ∼ N(0, I))": None, "far (x₀ ∼ N(0, 3² I))": 3.0
 METRICS = ("q_error", "value_error", "regret")
 
 
-def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int) -> list[dict]:
+def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int, classes=CLASSES) -> list[dict]:
     """Every class × weighting for one seed and behaviour: a list of result rows."""
     from tensordict import TensorDict
     from tensordict.nn import TensorDictModule
@@ -82,8 +82,9 @@ def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int) -> list[dict]
     weights = {"uniform": None,
                "learned ŵ": compute_density_ratio(fit.network, d).reshape(-1).detach(),
                "exact w": true_ratio(d.select("observation", "action"))["density_ratio"].reshape(-1).detach()}
+    iterations = 40 if quick else 300
     rows = []
-    for cls in CLASSES:
+    for cls in classes:
         for name, w in weights.items():
             t0 = time.perf_counter()
             row = {"seed": seed, "class": cls, "weighting": name,
@@ -96,7 +97,7 @@ def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int) -> list[dict]
                                             in_keys=["observation", "action"], out_keys=["state_action_value"])
                 loss = FQELoss(q_module, policy)
                 loss.make_value_estimator(gamma=env.config.gamma)
-                least_squares_fqe(loss, d, features, weight=w)
+                least_squares_fqe(loss, d, features, weight=w, iterations=iterations)
                 # FQI: the same iteration with π the greedy policy of the target Q
                 greedy = GreedyQuadraticPolicy(LinearQ(2, 2, degree=degree, initial_value=initial), 2,
                                                env.config.action_bound)
@@ -105,7 +106,7 @@ def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int) -> list[dict]
                                                in_keys=["observation", "action"], out_keys=["state_action_value"]),
                               greedy_module)
                 fqi.make_value_estimator(gamma=env.config.gamma)
-                fit_info = least_squares_fqe(fqi, d, features, weight=w, greedy=greedy)
+                fit_info = least_squares_fqe(fqi, d, features, weight=w, greedy=greedy, iterations=iterations)
                 greedy.set_theta(fqi.value_network_params.get(("module", "theta")))
                 regret = lqr_paired_regret("exp1", greedy_module, episodes=200 if quick else 1000, seed=seed)
                 row["regret"] = regret["regret"].mean
@@ -226,7 +227,8 @@ def main() -> None:
     for behaviour, start in BEHAVIOURS.items():
         for seed in seeds:
             t0 = time.perf_counter()
-            for row in run_seed(seed, start, quick=args.quick, mlp_steps=mlp_steps):
+            classes = ("poly2", "mlp8") if args.quick else CLASSES
+            for row in run_seed(seed, start, quick=args.quick, mlp_steps=mlp_steps, classes=classes):
                 rows.append({"behaviour": behaviour, **row})
             print(f"{behaviour} seed {seed}: {time.perf_counter() - t0:.0f}s", flush=True)
     with open(out / "results.csv", "w", newline="") as f:
