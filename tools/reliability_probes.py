@@ -1,7 +1,9 @@
 """The hostile-but-fair user's probes of the recipe, replayed as real commands at a tiny budget: two runs into one
 directory, dated directories of one second, a saved dataset behind the data cache, a collapsed stage 1, Ctrl-C during
-the final evaluation, ``overwrite=true`` and old logs, refused commands that must change nothing on disk, config
-errors that must name their key, and resumes that must leave no stray directory.
+the final evaluation, ``overwrite=true`` and old logs (and the user's own), refused commands that must change nothing
+on disk, config errors that must name their key, resumes that must leave no stray directory, a run record naming a
+YAML file in the run directory, temporary files planted as links, and a benchmark namespace leading out of its data
+path.
 
     python tools/reliability_probes.py                  # every probe (about 3 minutes on 2 cores)
     python tools/reliability_probes.py --fast           # the ones that take a few seconds each
@@ -191,7 +193,76 @@ def config_errors_name_the_key(tmp: Path) -> str:
     return f"{len(cases)} errors named their key, nothing written"
 
 
+def a_run_record_naming_a_yaml_runs_nothing(tmp: Path) -> str:
+    check(run([*RECIPE, *B, "hydra.run.dir=X"], tmp).returncode == 0, "the first run failed")
+    outside = tmp / "created_outside"
+    (tmp / "X" / "evil.yaml").write_text("# @package _global_\nhydra:\n  callbacks:\n    evil:\n"
+                                         f"      _target_: os.makedirs\n      name: {outside}\n")
+    record = tmp / "X" / ".hydra" / "overrides.yaml"
+    saved = record.read_text()
+    said = []
+    for group in ("env", "algo", "logger"):
+        relative = os.path.relpath(tmp / "X" / "evil", ROOT / "configs" / group)
+        record.write_text(saved + f"- {group}={relative}\n")
+        before = snapshot(tmp / "X")
+        proc = run([*RECIPE, "resume=X"], tmp)
+        check(proc.returncode != 0, f"{group}=<path>: the resume ran")
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        check(len(lines) == 1 and "Traceback" not in proc.stderr, f"{group}=<path>: {len(lines)} lines")
+        check(not outside.exists(), f"{group}=<path>: a folder outside the run directory was created")
+        check(snapshot(tmp / "X") == before, f"{group}=<path>: the run directory changed")
+        said.append(lines[0])
+    return f"3 group overrides refused: {said[0][:70]}..."
+
+
+def planted_links_are_not_written_through(tmp: Path) -> str:
+    check(run([*RECIPE, *B, "q.steps=400", "q.eval_every=400", "checkpoint_every=40", "hydra.run.dir=X"], tmp)
+          .returncode == 0, "the first run failed")
+    victims = {}
+    for name in ("results.json.tmp", "history.json.tmp", "checkpoint.tmp"):
+        victim = tmp / f"victim_{name}"
+        victim.write_text("mine\n")
+        (tmp / "X" / name).symlink_to(victim)
+        victims[victim] = victim.read_text()
+    proc = run([*RECIPE, "resume=X", "eval.episodes=60"], tmp)
+    check(proc.returncode == 0, f"resume: {last_line(proc.stderr)}")
+    check(all(v.read_text() == text for v, text in victims.items()), "a file outside the run directory changed")
+    check(not any((tmp / "X" / n).is_symlink() for n in ("results.json", "history.json", "checkpoint.pt")),
+          "a run file is a link")
+    return "3 links planted as temporaries: their targets untouched, the run's files regular"
+
+
+def benchmark_namespace_out_of_its_data_path(tmp: Path) -> str:
+    victim = tmp / "victim" / "pendulum" / "expert-v0"
+    victim.mkdir(parents=True)
+    (victim / "mine.txt").write_text("mine")
+    (tmp / "a" / "D").mkdir(parents=True)
+    proc = run([sys.executable, "-m", "torchrl_wbrm.data.benchmark", "--data-path", "a/D", "--tasks", "pendulum",
+                "--namespace", "../../victim", "--overwrite"], tmp)
+    check(proc.returncode == 2, f"exit {proc.returncode}: {last_line(proc.stderr)}")
+    check("Traceback" not in proc.stderr, "a traceback")
+    check((victim / "mine.txt").is_file(), "the victim's folder was deleted")
+    check(not any((tmp / "a" / "D").iterdir()), "something was written under the data path")
+    return last_line(proc.stderr)[:90]
+
+
+def overwrite_keeps_the_users_logs(tmp: Path) -> str:
+    check(run([*RECIPE, *B, "hydra.run.dir=X"], tmp).returncode == 0, "the first run failed")
+    (tmp / "X" / "analysis_notes.log").write_text("mine")
+    with open(tmp / "X" / "second_run.log", "w") as out:
+        proc = subprocess.run([*RECIPE, *B, "hydra.run.dir=X", "overwrite=true"], cwd=tmp, env=ENV, stdout=out,
+                              stderr=subprocess.STDOUT, text=True, timeout=300)
+    check(proc.returncode == 0, f"exit {proc.returncode}")
+    check((tmp / "X" / "analysis_notes.log").read_text() == "mine", "the user's log was removed")
+    check("run directory:" in (tmp / "X" / "second_run.log").read_text(), "the command's own output was lost")
+    return "analysis_notes.log and the redirected output kept"
+
+
 PROBES = {  # name: (probe, fast)
+    "a_run_record_naming_a_yaml_runs_nothing": (a_run_record_naming_a_yaml_runs_nothing, False),
+    "planted_links_are_not_written_through": (planted_links_are_not_written_through, True),
+    "benchmark_namespace_out_of_its_data_path": (benchmark_namespace_out_of_its_data_path, True),
+    "overwrite_keeps_the_users_logs": (overwrite_keeps_the_users_logs, True),
     "two_runs_into_one_directory": (two_runs_into_one_directory, True),
     "dated_directories_of_one_second": (dated_directories_of_one_second, True),
     "refused_commands_change_nothing": (refused_commands_change_nothing, False),
