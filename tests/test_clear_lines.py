@@ -422,3 +422,39 @@ def test_a_wandb_run_writes_nothing_of_wandbs_under_home(tmp_path, monkeypatch):
     assert results["status"] == "finished"
     assert [p for p in home.rglob("*") if "wandb" in str(p.relative_to(home)).lower()] == []
     assert list((run / "wandb").glob("offline-run-*")) and (run / "wandb" / "debug.log").is_file()
+
+
+def test_a_run_whose_directory_is_removed_stops_with_one_line_and_recreates_nothing(tmp_path):
+    run = tmp_path / "run"
+    trainer = WBRMTrainer(tiny(), run, progress=False)
+    step = trainer._q_step
+
+    def remove_at_12(i):
+        if i == 12:
+            shutil.rmtree(run)
+        return step(i)
+
+    trainer._q_step = remove_at_12
+    with pytest.raises(FileNotFoundError) as err:
+        trainer.run()
+    assert str(err.value).startswith(f"The run directory {run} was removed (or replaced) while the run held it")
+    assert not run.exists()
+
+
+def test_a_multi_seed_resume_of_another_configs_seeds_is_refused_before_anything(tmp_path):
+    from tests.test_rundir import compose
+    from torchrl_wbrm.training.config import config_as_dict
+    from torchrl_wbrm.training.hydra_guard import RunDirGuard
+
+    run = tmp_path / "run"
+    (run / "seed0").mkdir(parents=True)
+    saved = config_as_dict(_seed_cfg(0))
+    saved["q"]["lr"] = 0.5
+    (run / "seed0" / "results.json").write_text(json.dumps({"status": "finished", "config": saved}))
+    before = sorted(p.name for p in run.rglob("*"))
+    with pytest.raises(SystemExit) as exit_:
+        RunDirGuard().on_run_start(config=compose(*TINY, "seeds=[0,1]", f"resume={run}"))
+    line = str(exit_.value.code)
+    assert line.startswith(f"Refused (nothing was written): {run / 'seed0' / 'results.json'} holds a finished run "
+                           f"with other settings: q.lr: 0.5 -> ") and "\n" not in line
+    assert sorted(p.name for p in run.rglob("*")) == before

@@ -169,6 +169,13 @@ def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
         sys.exit(130)
     except OSError as err:
         _stopped_on(err, cfg, run_dir)
+    except ValueError as err:  # a seed's folder refused (its checkpoint, its config): one line
+        if cfg.verbose:
+            import traceback
+
+            traceback.print_exc()
+        print(f"Refused: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(1)
     print(summarise_seeds(results))
     print(f"run directory: {run_dir}")
     if results["seeds_diverged"]:

@@ -17,7 +17,7 @@ from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_d
 
 __all__ = ["CONFIG_GROUPS", "CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES",
            "changed_keys", "check_finished_config", "check_resume_config", "check_run_record", "check_run_request",
-           "group_options", "is_continuable", "read_run_record"]
+           "check_seeds_resume", "group_options", "is_continuable", "read_run_record"]
 
 
 #: Keys a resumed run may change: they do not change what has been trained (``q.steps`` only upwards).
@@ -223,6 +223,33 @@ def check_resume_config(path: Path, saved: dict, now: dict, state: dict) -> dict
     return changes
 
 
+def check_seeds_resume(cfg, run_dir: Path, task=None) -> None:
+    """Before a multi-seed run is resumed, each of its seeds' folders: a finished seed's results must be this
+    config's (:func:`check_finished_config`), and a seed's checkpoint one this config may continue
+    (:func:`check_resume_config`); a damaged file is named. Nothing is written."""
+    import json
+
+    now = config_as_dict(cfg, task)
+    now.pop("seeds", None)
+    for seed in cfg.seeds:
+        seed_dir = Path(run_dir) / f"seed{seed}"
+        now_seed = {**now, "seed": int(seed)}
+        done = seed_dir / "results.json"
+        if done.is_file():
+            try:
+                results = json.loads(done.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError) as err:
+                raise ValueError(f"Cannot resume: {done} is damaged ({err}); delete it to run seed {seed} again.") \
+                    from None
+            if not (isinstance(results, dict) and isinstance(results.get("config"), dict)):
+                raise ValueError(f"Cannot resume: {done} holds no config (key 'config'), so it cannot be told to be "
+                                 f"this run's seed {seed}; delete it to run that seed again.")
+            check_finished_config(done, results["config"], now_seed)
+        elif (seed_dir / CHECKPOINT).is_file():
+            sd = read_checkpoint(seed_dir / CHECKPOINT)
+            check_resume_config(seed_dir / CHECKPOINT, dict(sd["config"]), now_seed, sd["state"])
+
+
 def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | None = None,
                       task=None) -> tuple[RunDirClaim, dict | None]:
     """Everything that can refuse a run in ``run_dir`` before it starts, with nothing written: the directory is
@@ -241,6 +268,7 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
         try:
             refuse_links(run_dir)
             check_writable_folder(run_dir, "resume")
+            check_seeds_resume(cfg, run_dir, task)
         except BaseException:
             claim.release()
             raise

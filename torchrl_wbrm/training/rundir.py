@@ -187,6 +187,21 @@ class RunDirClaim:
         if fd is not None and fd >= 0:
             os.close(fd)  # closing the descriptor drops its lock
 
+    def check_present(self) -> None:
+        """Raise ``FileNotFoundError`` naming the directory if the claimed directory was removed, or replaced by
+        another, while the run held it: a run never writes its files into a directory made anew under that name."""
+        if self._fd is None or self._fd < 0:
+            return
+        held = os.fstat(self._fd)
+        try:
+            now = os.stat(self.path)
+        except OSError:
+            now = None
+        if held.st_nlink == 0 or now is None or (now.st_dev, now.st_ino) != (held.st_dev, held.st_ino):
+            raise FileNotFoundError(f"The run directory {self.path} was removed (or replaced) while the run held it; "
+                                    f"its outputs are not written into another directory of that name. Start the run "
+                                    f"again.")
+
     def __del__(self) -> None:
         self.release()
 

@@ -900,6 +900,8 @@ class WBRMTrainer:
         if bad is not None:
             raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
         state = self.state_dict()
+        if self._claim is not None:  # the directory this run claimed, not one made anew under its name
+            self._claim.check_present()
         atomic_write(path, lambda f: torch.save(state, f), tmp=path.with_suffix(".tmp"))  # fsynced, then renamed
         self._checkpoint_state = dict(self.state)
         return path
