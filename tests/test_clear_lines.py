@@ -458,3 +458,17 @@ def test_a_multi_seed_resume_of_another_configs_seeds_is_refused_before_anything
     assert line.startswith(f"Refused (nothing was written): {run / 'seed0' / 'results.json'} holds a finished run "
                            f"with other settings: q.lr: 0.5 -> ") and "\n" not in line
     assert sorted(p.name for p in run.rglob("*")) == before
+
+
+@pytest.mark.parametrize("run_dir, expected", [
+    ("outputs/run_1", "python recipes/wbrm_offline.py resume=outputs/run_1"),
+    ("my runs/run 1", "python recipes/wbrm_offline.py 'resume=my runs/run 1'"),
+])
+def test_the_printed_resume_command_is_quoted_for_the_shell(monkeypatch, run_dir, expected):
+    from torchrl_wbrm.training import stops
+
+    monkeypatch.setattr(stops, "RESUME_COMMAND", "python recipes/wbrm_offline.py")
+    assert stops.resume_command(Path(run_dir)) == expected
+    assert shlex.split(expected)[-1] == f"resume={run_dir}"
+    message = str(stops.RunInterrupted(signal.SIGINT, "q", 20, Path(run_dir)))
+    assert message.endswith(f"Resume with: {expected}")

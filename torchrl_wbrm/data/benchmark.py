@@ -452,9 +452,13 @@ def main(argv=None) -> None:
         locomotion_rows = [make_locomotion_task(name, args.data_path, seed=args.seed, namespace=args.namespace,
                                                 transitions=args.transitions, expert_shares=args.expert_shares,
                                                 overwrite=args.overwrite) for name in locomotion]
-    except (ValueError, OSError, ModuleNotFoundError) as err:  # refused before anything was written, in one line
+    except (ValueError, FileExistsError, ModuleNotFoundError) as err:  # refused before anything was written
         print(f"benchmark: refused: {' '.join(str(err).split())}", file=sys.stderr)
         sys.exit(2)
+    except OSError as err:  # a full or read-only disk while writing: one line naming the file
+        print(f"benchmark: stopped: {' '.join(str(err).split())}; a dataset being written under {args.data_path} may "
+              f"be incomplete: run the command again with --overwrite once the disk is writable.", file=sys.stderr)
+        sys.exit(1)
     except KeyboardInterrupt:
         print(f"benchmark: interrupted; a dataset being written under {args.data_path} may be incomplete: run the "
               f"command again with --overwrite to write it anew.", file=sys.stderr)
