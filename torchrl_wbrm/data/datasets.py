@@ -383,7 +383,10 @@ class OfflineDatasets:
             files[name] = entries
         meta = {"format_version": FORMAT_VERSION, "sizes": self.sizes(), "files": files, **self.metadata}
         tmp = path / "metadata.json.tmp"
-        tmp.write_text(json.dumps(meta, indent=2, default=str))
+        tmp.unlink(missing_ok=True)  # a stale temporary, or a link planted under its name, is removed, not followed
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644),
+                       "w") as f:
+            f.write(json.dumps(meta, indent=2, default=str))
         os.replace(tmp, path / "metadata.json")
         return path
 
