@@ -280,7 +280,7 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     try:
         if resume or not (cfg.overwrite and holds_run(run_dir)):  # overwrite=true removes the earlier outputs
             refuse_links(run_dir)
-        check_writable_folder(run_dir, "resume" if resume else "the run directory")
+        check_writable_folder(run_dir, "resume" if resume else "hydra.run.dir")
         if resume:
             sd = read_checkpoint(path)
             check_resume_config(path, dict(sd["config"]), config_as_dict(cfg, task), sd["state"])
