@@ -160,3 +160,27 @@ def test_an_attribute_set_on_a_config_dataclass_is_refused():
     cfg.q.step = 1000
     with pytest.raises(ValueError, match=r"^q.step is not a setting of this recipe \(did you mean q.steps\?\)"):
         merge_config(cfg)
+
+
+def test_the_recipe_refuses_a_resume_on_changed_data_in_one_line(tmp_path):
+    """The same through the command: ``resume=X`` after the saved dataset's rewards changed is one line, no
+    traceback, and the run's files are as they were."""
+    import os
+
+    from tests import inprocess
+    from tests.test_clear_lines import TINY
+    from torchrl_wbrm.data.tasks import get_task
+
+    datasets = get_task(tiny().env).make_datasets(seed=0)
+    _save_with_rewards_scaled(datasets, tmp_path / "ds", row=300, factor=1.0)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    overrides = [*TINY, f"env.lqr_data.dataset_dir={tmp_path / 'ds'}", f"hydra.run.dir={tmp_path / 'run'}"]
+    assert inprocess.recipe(*overrides, cwd=tmp_path, env=env).returncode == 0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+    _save_with_rewards_scaled(datasets, tmp_path / "ds", row=300, factor=2.0)
+    proc = inprocess.recipe(f"resume={tmp_path / 'run'}", "eval.episodes=60", cwd=tmp_path, env=env)
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert lines[0].startswith(f"Refused: Cannot resume from {tmp_path / 'run' / 'checkpoint.pt'}: its data differ")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before

@@ -103,7 +103,7 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     if cfg.seeds:
         return _run_seeds(cfg, run_dir)
     try:
-        trainer = WBRMTrainer(prepared, run_dir, logger=None, resume=bool(cfg.resume))
+        trainer = _trainer(prepared, run_dir, cfg)
         trainer.logger = make_logger(
             cfg.logger, run_dir, f"wbrm_{cfg.env.name}_seed{cfg.seed}", OmegaConf.to_container(cfg, resolve=True)
         )
@@ -132,6 +132,20 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
         sys.exit(2)
     print(summarise(results))
     print(f"run directory: {run_dir}")
+
+
+def _trainer(prepared, run_dir: Path, cfg) -> WBRMTrainer:
+    """The run's trainer; what it refuses once the data are built (a resume on data that differ from the
+    checkpoint's, a setting the data cannot carry out) is one line, exit status 1, before any training."""
+    try:
+        return WBRMTrainer(prepared, run_dir, logger=None, resume=bool(cfg.resume))
+    except ValueError as err:
+        if cfg.verbose:
+            import traceback
+
+            traceback.print_exc()
+        print(f"Refused: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(1)
 
 
 def _stopped_on(err: OSError, cfg, run_dir: Path) -> None:
