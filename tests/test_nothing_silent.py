@@ -184,3 +184,17 @@ def test_the_recipe_refuses_a_resume_on_changed_data_in_one_line(tmp_path):
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert lines[0].startswith(f"Refused: Cannot resume from {tmp_path / 'run' / 'checkpoint.pt'}: its data differ")
     assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before
+
+
+def test_summarise_never_averages_a_stale_seed_folder_into_a_multi_seed_run(tmp_path):
+    """A ``seed2/`` beside a multi-seed run's record that does not list it (left by an earlier run) is not one of
+    its runs: ``load_results`` (what ``recipes/summarise.py`` reads) counts the record's seeds only."""
+    from torchrl_wbrm.training.reporting import load_results
+
+    run = tmp_path / "run"
+    for seed in (0, 1, 2):
+        (run / f"seed{seed}").mkdir(parents=True)
+        (run / f"seed{seed}" / "results.json").write_text(json.dumps({"seed": seed, "final": {"return": seed}}))
+    runs = [{"seed": s, "status": "finished", "final": {"return": s}} for s in (0, 1)]
+    (run / "results.json").write_text(json.dumps({"kind": "seeds", "seeds": [0, 1], "runs": runs}))
+    assert sorted(r["seed"] for r in load_results(run)) == [0, 1]
