@@ -29,6 +29,8 @@ from torchrl_wbrm.ratio import fit_density_ratio, store_density_ratio
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--quick", action="store_true", help="a few-second budget (CI)")
 parser.add_argument("--seed", type=int, default=0)
+parser.add_argument("--weight-reduction", default="mean", choices=["mean", "normalised"],
+                    help="how ŵ enters the critic's mean (WeightedBellmanLoss's weight_reduction)")
 parser.add_argument("--log-dir", default=None, help="CSV logs (defaults to a temporary folder)")
 args = parser.parse_args()
 torch.set_num_threads(1)
@@ -53,7 +55,8 @@ print(f"stage 1: best held-out loss {fit.best_loss:.4f} at step {fit.best_step} 
 q = make_q_network(env.config.state_dim, env.config.action_dim, num_cells=cells, activation="SiLU",
                    initial_bias=initial_q_value(replay_buffer, gamma))  # mean(r) / (1 − γ): where the targets are
 actor = make_deterministic_actor(env.config.state_dim, action_spec, num_cells=cells)
-loss = WeightedBellmanLoss(q, actor_network=actor, residual="squared", delay_value=True)
+loss = WeightedBellmanLoss(q, actor_network=actor, residual="squared", delay_value=True,
+                           weight_reduction=args.weight_reduction)
 loss.make_value_estimator(gamma=gamma)
 updater = SoftUpdate(loss, tau=0.05)
 critic_optim = torch.optim.Adam(loss.value_network_params.values(True, True), lr=1e-3)

@@ -1,7 +1,7 @@
 """The examples/ scripts run (``--quick``) and learn: each asserts an outcome against a computed reference, with a
 margin, not only that the script finished.
 
-All five run in the test process (one torch/torchrl import instead of five), each through
+All six run in the test process (one torch/torchrl import instead of six), each through
 :func:`tests.inprocess.run_script` as ``python examples/<name>.py --quick`` would run it; their printed output is
 parsed.
 """
@@ -20,7 +20,8 @@ from tests.references import reference_regrets
 #: one xdist worker runs this module (``pytest -n 2 --dist loadfile``): its shared runs are computed once
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr", "weighted_iql_lqr"]
+EXAMPLES = ["weighted_td3bc_lqr", "wbrm_ddpg_lqr", "wbrm_dqn_cartpole", "weighted_ddpg_lqr", "weighted_iql_lqr",
+            "wbrm_minari_agent"]
 
 
 @pytest.fixture(scope="session")
@@ -95,6 +96,18 @@ def test_weighted_iql_learns(outputs, regrets):
     assert weighted < 0.8 * regrets["behaviour_mean"], weighted
     assert not re.search(r"^IQL\s", text, re.MULTILINE), text  # the twin is not trained in --quick
     assert _figure(text, "behaviour mean") == pytest.approx(regrets["behaviour_mean"], abs=1e-4)
+
+
+def test_the_composed_minari_agent_runs_and_selects_by_the_held_out_residual(outputs):
+    """examples/wbrm_minari_agent.py --quick (300 updates: too few to learn the swing-up; the full run's score is in
+    the tutorial): it reads the example pair (an expert far above its behaviour data), delivers the actor of one of
+    its two evaluations, the one of lowest held-out weighted residual, and scores it on the env."""
+    text = outputs["wbrm_minari_agent"]
+    selected = re.search(r"^selected step (\d+) \(held-out weighted residual (-?[0-9.]+)\)", text, re.MULTILINE)
+    assert selected and int(selected.group(1)) in (150, 300), text
+    data = re.search(r"^expert data (-?[0-9.]+)\s+behaviour data (-?[0-9.]+)", text, re.MULTILINE)
+    assert data and float(data.group(1)) > float(data.group(2)) + 300, text
+    assert -4000 < _figure(text, "WBRM agent", "return") <= 0  # Pendulum's returns lie in [−16.3 · 200, 0]
 
 
 def test_the_docs_show_the_whole_reuse_script():
