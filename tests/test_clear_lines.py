@@ -287,6 +287,7 @@ def _seed_cfg(seed: int, *extra: str):
     return seed_config(to_config(compose_recipe_config([*TINY, "seeds=[0,1]", *extra])), seed)
 
 
+@pytest.mark.slow
 def test_a_multi_seed_run_killed_after_its_first_seed_resumes_without_losing_it(tmp_path):
     """The state a SIGKILL leaves in a run of seeds one at a time (``q.ensemble_size=2``): seed 0 finished, seed 1
     checkpointed at step 15, the run's record in ``.hydra/``. ``resume=<run dir>`` (the printed command) keeps seed
@@ -346,6 +347,7 @@ def test_ctrl_c_in_a_multi_seed_run_prints_a_quoted_resume_command_that_works(tm
 
 
 # ---------------------------------------------------------------------- logs
+@pytest.mark.slow
 def test_csv_logs_hold_each_step_once_after_a_resume(tmp_path):
     """Stopped at step 25 with its last checkpoint at step 20 (as a SIGKILL between two checkpoints leaves it): the
     rows of steps 21-25 are on disk; after the resume each step's row is there once, as in an uninterrupted run."""

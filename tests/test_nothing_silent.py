@@ -98,6 +98,7 @@ def test_the_largest_32_bit_seed_is_a_seed_of_its_own():
 
 
 # ---------------------------------------------------------------------- case 7: overwrite=true, multi-seed
+@pytest.mark.slow
 def test_overwrite_with_fewer_seeds_replaces_the_multi_seed_run_whole(tmp_path):
     from torchrl_wbrm.training.reporting import load_results
     from torchrl_wbrm.training.seeds import run_seeds
@@ -162,6 +163,7 @@ def test_an_attribute_set_on_a_config_dataclass_is_refused():
         merge_config(cfg)
 
 
+@pytest.mark.slow
 def test_the_recipe_refuses_a_resume_on_changed_data_in_one_line(tmp_path):
     """The same through the command: ``resume=X`` after the saved dataset's rewards changed is one line, no
     traceback, and the run's files are as they were."""
