@@ -5,7 +5,7 @@ on disk, config errors that must name their key, resumes that must leave no stra
 YAML file in the run directory, temporary files planted as links, and a benchmark namespace leading out of its data
 path.
 
-    python tools/reliability_probes.py                  # every probe (about 3 minutes on 2 cores)
+    python tools/reliability_probes.py                  # every probe (about 8 minutes on 2 cores)
     python tools/reliability_probes.py --fast           # the ones that take a few seconds each
     python tools/reliability_probes.py --only sigint_during_final_evaluation
     python tools/reliability_probes.py --list
@@ -260,9 +260,9 @@ def overwrite_keeps_the_users_logs(tmp: Path) -> str:
 
 PROBES = {  # name: (probe, fast)
     "a_run_record_naming_a_yaml_runs_nothing": (a_run_record_naming_a_yaml_runs_nothing, False),
-    "planted_links_are_not_written_through": (planted_links_are_not_written_through, True),
-    "benchmark_namespace_out_of_its_data_path": (benchmark_namespace_out_of_its_data_path, True),
-    "overwrite_keeps_the_users_logs": (overwrite_keeps_the_users_logs, True),
+    "planted_links_are_not_written_through": (planted_links_are_not_written_through, False),
+    "benchmark_namespace_out_of_its_data_path": (benchmark_namespace_out_of_its_data_path, False),
+    "overwrite_keeps_the_users_logs": (overwrite_keeps_the_users_logs, False),
     "two_runs_into_one_directory": (two_runs_into_one_directory, True),
     "dated_directories_of_one_second": (dated_directories_of_one_second, True),
     "refused_commands_change_nothing": (refused_commands_change_nothing, False),
