@@ -357,7 +357,7 @@ def test_priority_weight_and_input_checks_hold_on_every_network_call(path):
     q, y = loss.bellman_error(data)
     w = data["density_ratio"].squeeze(-1)
     with_p, figures = loss.value_loss(data.clone().set("priority_weight", p))
-    torch.testing.assert_close(with_p, (w * p * (q - y).pow(2)).mean())
+    torch.testing.assert_close(with_p, (w * p * (q - y).pow(2)).sum() / p.sum())  # TorchRL: Σ p l / Σ p
     torch.testing.assert_close(figures["weight_mean"], (w * p).mean())
     actor_loss = WeightedBellmanLoss.actor_loss  # the weighted actor loss reads the same product
     loss.weight_actor_loss = True
