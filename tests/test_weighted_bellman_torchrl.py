@@ -348,3 +348,33 @@ def test_twin_critics_and_target_smoothing_give_td3_loss_critic_target():
     for name_ours, name_td3 in pairs:
         getattr(unsmoothed, name_ours).data.update_(getattr(td3, name_td3).data)
     assert (unsmoothed.bellman_error(data.clone())[1] - target).abs().max() > 1e-4  # the noise matters here
+
+
+@pytest.mark.parametrize("index_actions", [False, True])
+def test_twin_discrete_critics_bootstrap_on_the_max_of_the_minimum(index_actions):
+    """A Q head with num_qvalue_nets=2: Q(x, a) per critic at the data's action (one-hot or index), and the target
+    r + γ (1 − terminated) max_a min_k Q'_k(x', a); the loss sums the critics' terms."""
+    torch.manual_seed(0)
+    loss = WeightedBellmanLoss(make_discrete_q_network(4, 3, num_cells=(8,)), num_qvalue_nets=2, use_weights=False)
+    loss.make_value_estimator(gamma=GAMMA)
+    with torch.no_grad():
+        for p in loss.target_value_network_params.values(True, True):
+            p.add_(0.3 * torch.randn_like(p))
+    data = _discrete_batch(weight=False)
+    if index_actions:
+        data["action"] = data["action"].argmax(-1)
+
+    def head(params, observation):
+        with params.to_module(loss.value_network):
+            return loss.value_network(TensorDict({"observation": observation}, observation.shape[:1]))["action_value"]
+
+    online = torch.stack([head(loss.value_network_params[k], data["observation"]) for k in range(2)])
+    target = torch.stack([head(loss.target_value_network_params[k], data["next", "observation"]) for k in range(2)])
+    action = data["action"] if not index_actions else torch.nn.functional.one_hot(data["action"], 3)
+    expected_q = (online * action).sum(-1)
+    not_terminated = (~data["next", "terminated"]).float().squeeze(-1)
+    expected_y = data["next", "reward"].squeeze(-1) + GAMMA * not_terminated * target.amin(0).amax(-1)
+    q_value, y = loss.bellman_error(data.clone())
+    torch.testing.assert_close(q_value, expected_q)
+    torch.testing.assert_close(y, expected_y)
+    torch.testing.assert_close(loss(data.clone())["loss_value"], (expected_q - expected_y).pow(2).sum(0).mean())

@@ -791,7 +791,7 @@ class WeightedBellmanLoss(LossModule):
                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(Q(x_i, a_i), Y_i)``, each of shape ``[*B]``, with ``Y_i = r_i + γ (1 − terminated_i) max Q(x'_i, ·)``.
 
-        ``Y`` carries a gradient exactly when the bootstrap is by residual gradient (``delay_value=False``).
+        ``Y`` carries a gradient exactly when the bootstrap is by residual gradient (``residual_gradient=True``).
         Shared by :meth:`value_loss` and by subclasses (:class:`~torchrl_wbrm.objectives.MABOLoss`).
         ``weight_to_check``: ŵ, checked with the batch's entries (see :meth:`_checked_inputs`).
         """
