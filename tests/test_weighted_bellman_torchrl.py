@@ -378,3 +378,20 @@ def test_twin_discrete_critics_bootstrap_on_the_max_of_the_minimum(index_actions
     torch.testing.assert_close(q_value, expected_q)
     torch.testing.assert_close(y, expected_y)
     torch.testing.assert_close(loss(data.clone())["loss_value"], (expected_q - expected_y).pow(2).sum(0).mean())
+
+
+@pytest.mark.parametrize("mask_key", [("collector", "mask"), "shifted_valid"])
+def test_ratio_loss_drops_masked_samples(mask_key):
+    """RobustDensityRatioLoss: a validity mask in the "behaviour" or "expert" samples drops those rows from every
+    mean: the loss and its figures are those of the valid rows alone."""
+    loss, batch = _ratio_loss_and_batch()
+    loss.normalisation_coefficient = 0.5
+    b_mask, e_mask = torch.tensor([1, 0, 1, 1, 0, 1, 1, 0], dtype=torch.bool), torch.tensor([1, 1, 0, 1, 0, 1]).bool()
+    masked = batch.clone()
+    masked["behaviour"].set(mask_key, b_mask.unsqueeze(-1))
+    masked["expert"].set(mask_key, e_mask)
+    alone = TensorDict({"behaviour": batch["behaviour"][b_mask], "expert": batch["expert"][e_mask]}, [])
+    got, want = loss(masked), loss(alone)
+    for key in want.keys():
+        torch.testing.assert_close(got[key], want[key])
+    assert (loss(batch)["loss_density_ratio"] - want["loss_density_ratio"]).abs() > 1e-4  # the mask matters here

@@ -37,6 +37,7 @@ __all__ = [
     "power_divergence_integrands",
     "q_value_bound",
     "reduce_batch",
+    "masked_reduce",
     "td3bc_lambda",
     "weighted_bellman_residual",
     "weighted_reduce",
@@ -68,6 +69,29 @@ def reduce_batch(value: torch.Tensor, reduction: str) -> torch.Tensor:
     if reduction == "sum":
         return value.sum()
     return value
+
+
+def masked_reduce(value: torch.Tensor, reduction: str, mask: torch.Tensor | None = None) -> torch.Tensor:
+    r""":func:`reduce_batch` over the samples where the bool ``mask`` (of ``value``'s shape) holds: TorchRL's rule
+    for validity masks (``LossModule._reduce_loss``); the masked samples are selected away, not multiplied by 0 (a
+    NaN there stays out).
+
+    .. math::
+
+        \text{mean}: \frac{\sum_i m_i \ell_i}{\max(1, \sum_i m_i)}, \qquad \text{sum}: \sum_i m_i \ell_i,
+        \qquad \text{none}: m_i \ell_i
+
+    Examples:
+        >>> import torch
+        >>> masked_reduce(torch.tensor([1.0, 5.0, float("nan")]), "mean", torch.tensor([True, True, False]))
+        tensor(3.)
+    """
+    if mask is None:
+        return reduce_batch(value, reduction)
+    value = torch.where(mask, value, torch.zeros_like(value))
+    if reduction == "mean":
+        return value.sum() / mask.sum().clamp_min(1)
+    return reduce_batch(value, reduction)
 
 
 def weighted_reduce(value: torch.Tensor, weight: torch.Tensor, reduction: str) -> torch.Tensor:
@@ -194,6 +218,8 @@ def basu_power_divergence(
     relative_beta: float = 0.0,
     non_negative_correction: float | None = None,
     reduction: str = "mean",
+    behaviour_mask: torch.Tensor | None = None,
+    expert_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     r"""The empirical robust density-ratio loss of Section 3 ("Density Ratio Estimation for dP^e/dP^b").
 
@@ -237,6 +263,9 @@ def basu_power_divergence(
         non_negative_correction (float, optional): D3RE's C; ``None`` (default) means off.
         reduction (str): how samples are aggregated: ``"mean"`` (default), ``"sum"``, or ``"none"`` for per-pair
             terms (requires equal shapes and no correction).
+        behaviour_mask, expert_mask (Tensor, optional): bool, of ``w_behaviour``'s (``w_expert``'s) shape: the
+            samples where it is False are dropped, TorchRL's rule for validity masks (the means run over the valid
+            samples; ``"none"`` gives 0 at the others). Defaults to ``None`` (every sample counts).
 
     Examples:
         >>> import torch
@@ -246,14 +275,15 @@ def basu_power_divergence(
     """
     if reduction == "none" and non_negative_correction is not None:
         raise ValueError("The non-negative correction acts on batch means; it has no per-sample form.")
-    reduce = functools.partial(reduce_batch, reduction=reduction)
     psi_behaviour, _ = power_divergence_integrands(w_behaviour, alpha)
     psi_expert, phi_expert = power_divergence_integrands(w_expert, alpha)
-    denominator = (1 - relative_beta) * reduce(psi_behaviour) + relative_beta * reduce(psi_expert)
+    behaviour = functools.partial(masked_reduce, reduction=reduction, mask=behaviour_mask)
+    expert = functools.partial(masked_reduce, reduction=reduction, mask=expert_mask)
+    denominator = (1 - relative_beta) * behaviour(psi_behaviour) + relative_beta * expert(psi_expert)
     if non_negative_correction is None:
-        return denominator - reduce(phi_expert)
-    corrected = non_negative_correction * reduce(psi_expert)
-    return (denominator - corrected).abs() + corrected - reduce(phi_expert)
+        return denominator - expert(phi_expert)
+    corrected = non_negative_correction * expert(psi_expert)
+    return (denominator - corrected).abs() + corrected - expert(phi_expert)
 
 
 # ---------------------------------------------------------------------- stage 2: the Bellman residual

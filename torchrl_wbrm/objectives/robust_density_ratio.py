@@ -26,6 +26,7 @@ from torchrl_wbrm.objectives._utils import (
 from torchrl_wbrm.objectives.functional import (
     basu_power_divergence,
     effective_sample_size,
+    masked_reduce,
     power_divergence_integrands,
 )
 
@@ -242,6 +243,7 @@ class RobustDensityRatioLoss(LossModule):
                                     (self.tensor_keys.expert, *prefix), behaviour.batch_size, expert.batch_size)
         w_behaviour = self.density_ratio(behaviour, "behaviour")
         w_expert = self.density_ratio(expert, "expert")
+        behaviour_mask, expert_mask = self._validity_mask(behaviour, w_behaviour), self._validity_mask(expert, w_expert)
         loss = basu_power_divergence(
             w_behaviour,
             w_expert,
@@ -249,22 +251,43 @@ class RobustDensityRatioLoss(LossModule):
             relative_beta=self.relative_beta,
             non_negative_correction=self.non_negative_correction,
             reduction=self.reduction,
+            behaviour_mask=behaviour_mask,
+            expert_mask=expert_mask,
         )
-        denominator_mean = (1 - self.relative_beta) * w_behaviour.mean() + self.relative_beta * w_expert.mean()
+        behaviour_mean = masked_reduce(w_behaviour, "mean", behaviour_mask)
+        expert_mean = masked_reduce(w_expert, "mean", expert_mask)
+        denominator_mean = (1 - self.relative_beta) * behaviour_mean + self.relative_beta * expert_mean
         penalty = (denominator_mean - 1).pow(2)
         if self.normalisation_coefficient > 0:
             loss = loss + self.normalisation_coefficient * penalty
         with torch.no_grad():
-            both = torch.cat([w_behaviour.reshape(-1), w_expert.reshape(-1)])
+            valid = [(w, m) for w, m in ((w_behaviour, behaviour_mask), (w_expert, expert_mask))]
+            low = torch.stack([(w if m is None else torch.where(m, w, torch.full_like(w, math.inf))).min()
+                               for w, m in valid])
+            high = torch.stack([(w if m is None else torch.where(m, w, torch.zeros_like(w))).max() for w, m in valid])
+            ess_weights = w_behaviour if behaviour_mask is None else torch.where(
+                behaviour_mask, w_behaviour, torch.zeros_like(w_behaviour))
             diagnostics = {
-                "density_ratio_behaviour_mean": w_behaviour.mean(),
-                "density_ratio_expert_mean": w_expert.mean(),
-                "density_ratio_min": both.min(),
-                "density_ratio_max": both.max(),
-                "density_ratio_ess": effective_sample_size(w_behaviour),
+                "density_ratio_behaviour_mean": behaviour_mean.detach(),
+                "density_ratio_expert_mean": expert_mean.detach(),
+                "density_ratio_min": low.min(),
+                "density_ratio_max": high.max(),
+                "density_ratio_ess": effective_sample_size(ess_weights),
                 "normalisation_penalty": penalty.detach(),
             }
         return loss, diagnostics
+
+    def _validity_mask(self, samples: TensorDictBase, like: torch.Tensor) -> torch.Tensor | None:
+        """TorchRL's validity mask of one set of samples (``("collector", "mask")`` and ``"shifted_valid"`` in the
+        ``"behaviour"`` or ``"expert"`` sub-TensorDict, per ``loss_mask_key``), of ``like``'s shape; ``None`` where
+        the set holds none. Masked samples are dropped from every mean (TorchRL's ``_reduce_loss`` rule)."""
+        mask = None
+        for key in self._loss_mask_keys():
+            value = samples.get(key, None)
+            if value is not None:
+                value = self._expand_loss_mask(value, like)
+                mask = value if mask is None else mask & value
+        return mask
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
