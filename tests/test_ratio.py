@@ -302,3 +302,16 @@ def test_stored_weights_follow_their_rows(storage):
     rb.extend(own)  # rows 2, 3
     torch.testing.assert_close(torch.as_tensor(rb.storage._storage["density_ratio"][2:4]), torch.tensor([5.0, 7.0]))
     assert len(rb._transform) == 1  # storing again added no second transform
+
+
+def test_a_ratio_network_of_other_dimensions_is_refused_in_one_line():
+    """A network fitted on 1-d observations and actions, given rows of 3-d observations, is named with the rows'
+    shapes instead of torch's ``mat1 and mat2`` error; a network reading a key the data lack names it."""
+    network = DensityRatioNetwork(1, 1, num_cells=(8,))
+    rows = TensorDict({"observation": torch.randn(5, 3), "action": torch.randn(5, 1)}, [5])
+    with pytest.raises(ValueError, match=r"per-row shapes \{'observation': \(3,\), 'action': \(1,\)\}") as info:
+        store_density_ratio(rows, ratio_network=network)
+    assert "\n" not in str(info.value)
+    assert "density_ratio" not in rows.keys()
+    with pytest.raises(KeyError, match="reads \\['action'\\]"):
+        compute_density_ratio(network, TensorDict({"observation": torch.randn(5, 1)}, [5]))

@@ -119,12 +119,25 @@ def compute_density_ratio(
     (``[N, 1]`` for a :class:`~torchrl_wbrm.modules.DensityRatioNetwork`). Only the network's ``in_keys`` are read."""
     if chunk_size <= 0:
         raise ValueError(f"chunk_size must be > 0, got {chunk_size}.")
-    td = as_tensordict(data).select(*ratio_network.in_keys)
+    rows = as_tensordict(data)
+    missing = [key for key in ratio_network.in_keys if key not in rows.keys(True, True)]
+    if missing:
+        raise KeyError(f"The ratio network reads {missing}, which the data do not hold (their keys: "
+                       f"{sorted(map(str, rows.keys(True, True)))}).")
+    td = rows.select(*ratio_network.in_keys)
     out_key = out_key if out_key is not None else ratio_network.out_keys[0]
     if device is None:
         param = next(iter(ratio_network.parameters()), None)
         device = param.device if param is not None else td.device
-    return torch.cat([ratio_network(chunk.to(device))[out_key] for chunk in td.split(chunk_size)]).cpu()
+    try:
+        return torch.cat([ratio_network(chunk.to(device))[out_key] for chunk in td.split(chunk_size)]).cpu()
+    except RuntimeError as err:
+        if "shapes cannot be multiplied" not in str(err) and "size mismatch" not in str(err):
+            raise
+        widths = {str(key): tuple(td.get(key).shape[td.batch_dims:]) for key in ratio_network.in_keys}
+        raise ValueError(f"The ratio network does not take these data: their {', '.join(ratio_network.in_keys)} "
+                         f"have the per-row shapes {widths}, and the network fails on them ({str(err).splitlines()[0]}); "
+                         f"pass the network fitted on data of these dimensions.") from None
 
 
 def _warn_if_tiny_ess(w: torch.Tensor, key: NestedKey, temper: float) -> None:
