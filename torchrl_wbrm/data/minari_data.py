@@ -804,7 +804,12 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None, num_envs: i
                          f"{metadata.get('observation_space')}).")
     if len(shape) > 1:
         transforms.append(FlattenObservation(-len(shape), -1, in_keys=["observation"]))
-    env = TransformedEnv(base, Compose(*transforms)) if transforms else base
+    if isinstance(base, TransformedEnv):  # a vector env comes with torchrl's own auto-reset transform: extend it
+        for transform in transforms:
+            base.append_transform(transform)
+        env = base
+    else:
+        env = TransformedEnv(base, Compose(*transforms)) if transforms else base
     if seed is not None:
         env.set_seed(seed)
     return env
