@@ -82,7 +82,7 @@ def test_the_doctests_pass(sphinx, doctrees, tmp_path):
 
 
 STUDIES = ["paper_tables", "weighting_study", "q_accuracy_study", "ablations", "convergence", "benchmark",
-           "peer_d3rlpy", "few_demonstrations"]
+           "peer_d3rlpy", "few_demonstrations", "misspecified_q", "offline_value"]
 
 
 @pytest.mark.parametrize("study", STUDIES)

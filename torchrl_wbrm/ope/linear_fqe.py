@@ -36,7 +36,7 @@ class LinearQ(nn.Module):
     Examples:
         >>> import torch
         >>> q = LinearQ(2, 1, degree=1, initial_value=3.0)
-        >>> q(torch.zeros(4, 2), torch.zeros(4, 1)).squeeze(-1)
+        >>> q(torch.zeros(4, 2), torch.zeros(4, 1)).squeeze(-1).detach()
         tensor([3., 3., 3., 3.])
     """
 
