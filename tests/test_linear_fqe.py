@@ -44,8 +44,7 @@ def test_greedy_policy_of_q_star_is_the_optimal_gain():
     assert float(greedy(far).detach().abs().max()) == pytest.approx(5.0)
 
 
-@pytest.mark.slow
-def test_least_squares_fqe_recovers_q_pi_exactly_on_unclipped_lqr():
+def test_least_squares_fqe_recovers_q_pi_exactly_on_unclipped_lqr(single_thread):
     env = LQREnv(UNCLIPPED)
     _, K = env.riccati()
     gain = 0.8 * K
@@ -72,8 +71,7 @@ def test_least_squares_fqe_recovers_q_pi_exactly_on_unclipped_lqr():
         least_squares_fqe(loss, data, PolynomialFeatures(2), weight=-torch.ones(data.shape[0]))
 
 
-@pytest.mark.slow
-def test_least_squares_fqi_finds_the_optimal_policy_on_unclipped_lqr():
+def test_least_squares_fqi_finds_the_optimal_policy_on_unclipped_lqr(single_thread):
     env = LQREnv(UNCLIPPED)
     _, K = env.riccati()
     q = LinearQ(2, 2, degree=2, initial_value=90.0)

@@ -70,7 +70,7 @@ def test_time_left_and_initial_rows():
         with_time_left(data, 3)
 
 
-def test_one_state_problem_by_hand():
+def test_one_state_problem_by_hand(single_thread):
     """Reward 1 for 5 steps at γ = ½: the finite-horizon return is Σ_{t<5} ½^t = 1.9375; the infinite-horizon value
     1 / (1 − ½) = 2. The policy is irrelevant (one state); the estimate is exact to the fit's precision."""
     data = _one_state_episodes(20, 5)
@@ -85,7 +85,7 @@ def test_one_state_problem_by_hand():
 
 
 @pytest.mark.slow
-def test_linear_policy_on_lqr_within_tolerance_of_closed_form():
+def test_linear_policy_on_lqr_within_tolerance_of_closed_form(single_thread):
     """FQE of the deterministic expert gain (0.95 K) on behaviour data (a = −0.5 K x + N(0, 0.5²), 250 episodes) vs
     the exact 20-step discounted return (``LQREnv.policy_return``, clipped reward, x_0 ∼ N(0, I)): within 0.3 (0.35%;
     measured 0.05). The naive figure, D's own mean return, is 2.3 below: the estimate has to evaluate the other
