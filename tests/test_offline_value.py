@@ -101,3 +101,16 @@ def test_linear_policy_on_lqr_within_tolerance_of_closed_form(single_thread):
     naive = torch.stack([data["next", "reward"].squeeze(-1)[data["episode"] == e] for e in data["episode"].unique()])
     naive = (naive.double() * 0.9 ** torch.arange(20, dtype=torch.float64)).sum(-1).mean().item()
     assert abs(naive - truth) > 5 * abs(estimate.value - truth)
+
+
+def test_weighted_estimate_reads_the_weight_key(single_thread):
+    """ŵ-weighted FQE through ``weight_key``: on the one-state problem every positive weighting has the same answer;
+    a missing weight entry is a KeyError naming it."""
+    data = _one_state_episodes(10, 5)
+    data["density_ratio"] = torch.rand(data.shape[0], 1, generator=torch.Generator().manual_seed(1)) + 0.1
+    policy = TensorDictModule(nn.Linear(1, 1), in_keys=["observation"], out_keys=["action"])
+    weighted = estimate_offline_value(policy, data, gamma=0.5, horizon=5, weight_key="density_ratio", steps=1000,
+                                      num_cells=(16,), lr=3e-3)
+    assert weighted.weighted and weighted.value == pytest.approx(1.9375, abs=0.015)
+    with pytest.raises(KeyError, match="ratio_typo"):
+        estimate_offline_value(policy, data, gamma=0.5, horizon=5, weight_key="ratio_typo", steps=1)
