@@ -78,8 +78,10 @@ def test_wbrm_scores_q_against_the_expert_like_episodes_returns(tmp_path):
     want = (q.reshape(-1).double() - g).pow(2).mean().item()
     assert results["final"]["expert_like_return_error"] == pytest.approx(want, rel=1e-4)
     _check_delivered(trainer, results, "expert_like_return_error")
-    assert results["selection"] == {"select": "expert_like_return", "figure": "expert_like_return_error",
-                                    "selected_step": results["final"]["selected_step"]}
+    selection = results["selection"]
+    assert (selection["select"], selection["figure"], selection["selected_step"]) == (
+        "expert_like_return", "expert_like_return_error", results["final"]["selected_step"])
+    assert selection["online_episodes_used_by_selection"] == 0
 
 
 def _check_delivered(trainer, results, figure):

@@ -71,6 +71,9 @@ def test_a_larger_budget_continues_from_the_last_step_not_the_selected_one(fake_
     extended = WBRMTrainer(tiny(q={"steps": 60}), tmp_path / "run", progress=False, resume=True).run()
     straight = WBRMTrainer(tiny(q={"steps": 60}), tmp_path / "straight", progress=False).run()
     assert extended["final"]["selected_step"] == straight["final"]["selected_step"] == 60
+    # step 40's own parameters are counted by their own evaluation, not by the step-20 parameters scored at 40
+    assert extended["selection"]["evaluations"] == straight["selection"]["evaluations"] == 6
+    assert extended["selection"]["best"] == straight["selection"]["best"]
     _same_final(extended, straight)
 
 
@@ -110,3 +113,26 @@ def test_an_algo_without_a_bellman_residual_is_refused(tmp_path):
 def test_an_unknown_choice_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"q.select='best' is not allowed"):
         WBRMTrainer(tiny(q={"select": "best"}), tmp_path / "best", progress=False)
+
+
+def test_the_selection_record_names_delivered_best_and_last_by_their_online_returns(fake_residual, tmp_path):
+    """``results.json``'s ``selection``: the delivered parameters (step 20) by the final evaluation, the last step's
+    (40) by an evaluation of their own on ``eval.train_episodes`` episodes, equal to a ``q.select=last`` run's final
+    evaluation on as many episodes; the best is the highest return among the evaluations; zero online episodes."""
+    trainer = WBRMTrainer(tiny(), tmp_path / "select", progress=False)
+    results = trainer.run()
+    sel = results["selection"]
+    assert sel["select"] == "held_out_residual" and sel["online_episodes_used_by_selection"] == 0
+    assert sel["delivered"] == {"step": 20, "episodes": 50, "return": results["final"]["return"],
+                                "return_ci": results["final"]["return_ci"]}
+    assert sel["last"]["step"] == 40 and sel["last"]["episodes"] == 20
+    last = WBRMTrainer(tiny(q={"select": "last"}, eval={"episodes": 20}), tmp_path / "last", progress=False).run()
+    assert sel["last"]["return"] == last["final"]["return"]
+    during = {r["step"]: r["return"] for r in trainer.history if r["stage"] == "q" and r["step"] < 40}
+    candidates = {**during, 40: sel["last"]["return"]}
+    assert sel["best"]["return"] == max(candidates.values()) and sel["evaluations"] == 4
+    assert sel["best"]["step"] == max(candidates, key=candidates.get)
+    assert sel["regret"] == pytest.approx(sel["best"]["return"] - during[20]) and sel["regret"] >= 0
+    plain = last["selection"]  # q.select=last delivers the last step's parameters, scored by the final evaluation
+    assert plain["select"] == "last" and plain["figure"] is None and plain["online_episodes_used_by_selection"] == 0
+    assert plain["delivered"] == plain["last"] and plain["delivered"]["step"] == 40

@@ -52,6 +52,7 @@ from torchrl_wbrm.training.reporting import below_behaviour, return_fell
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
+from torchrl_wbrm.training.selection import selection_record
 from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim, unique_dir
@@ -601,6 +602,7 @@ class WBRMTrainer:
         if selecting and final and self._q_last_state is None:
             self._keep_if_best(step, self._selection_figures()[criterion])
             if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
+                self.history.append({"stage": "q_last", "step": step, **self.evaluate()})  # for "selection"
                 self._q_last_state = _clone_state(self.q_loss.state_dict())
                 self.q_loss.load_state_dict(self.q_best["state"])
         try:
@@ -837,9 +839,9 @@ class WBRMTrainer:
             best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
-        if self.q_select_figure is not None:  # the figure the delivered step was chosen by (a fallback included)
-            results["selection"] = {"select": self.cfg.q.select, "figure": self.q_select_figure,
-                                    "selected_step": results["final"].get("selected_step")}
+        results["selection"] = selection_record(  # delivered, best and last by their online returns
+            self.history, self.cfg.q.select, self.q_select_figure, episodes=self.cfg.eval.episodes,
+            train_episodes=self.cfg.eval.train_episodes, steps=self.cfg.q.steps)
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
         check = getattr(self, "ratio_check", None)
