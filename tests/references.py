@@ -104,7 +104,7 @@ TINY_LQR = {
     "env": {"lqr_data": {"behaviour_episodes": 40, "expert_episodes": 20, "parallel_envs": 20}},
     "ratio": {"steps": 30, "batch_size": 64, "eval_every": 10, "num_cells": [16, 16]},
     "q": {"steps": 40, "batch_size": 32, "eval_every": 20, "num_cells": [16, 16], "actor_num_cells": [16, 16]},
-    "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 300},
+    "eval": {"episodes": 50, "train_episodes": 20, "q_samples": 300, "offline_value": False},
     "logger": {"backend": "", "log_every": 5},
     "plots": False,
 }

@@ -233,12 +233,19 @@ class EvalConfig:
             100, Minari 10).
         seed: evaluation seed (distinct from the data seed).
         q_samples: expert (and behaviour) state-actions for the Q* and ratio errors (LQR).
+        offline_value: after training, estimate the delivered policy's value from D alone, without the
+            environment (:mod:`torchrl_wbrm.training.offline_value`: FQE on D's training episodes, and ŵ-weighted
+            where stage 2 weighted them), the same quantity as the online ``return``; written to ``results.json`` as
+            ``final.offline_value`` with its 95% bootstrap interval over D's episodes.
+        offline_value_steps: FQE's gradient steps for each of those estimates.
     """
 
     episodes: Optional[int] = None
     train_episodes: Optional[int] = None
     seed: int = 1_000_000
     q_samples: int = 10_000
+    offline_value: bool = True
+    offline_value_steps: int = 1000
 
 
 @dataclass
@@ -569,7 +576,7 @@ def validate_config(cfg, task: Task | None = None) -> None:
     if not (cfg.q.value_scale > 0 and math.isfinite(cfg.q.value_scale)):
         raise ValueError(f"q.value_scale must be finite and > 0, got {cfg.q.value_scale!r}.")
     positive = ["ratio.steps", "ratio.batch_size", "ratio.lr", "q.steps", "q.batch_size", "q.lr", "q.actor_lr",
-                "eval.episodes", "eval.train_episodes", "q.eval_every", "ratio.eval_every", "q.actor_delay",
+                "eval.episodes", "eval.train_episodes", "eval.offline_value_steps", "q.eval_every", "ratio.eval_every", "q.actor_delay",
                 "logger.log_every"]
     for key in positive:
         if not _get(cfg, key) > 0:

@@ -50,6 +50,11 @@ def summarise(results: dict) -> str:
             lines.append(f"normalised score {_n(f['normalised_score'], '.1f')} ± {_n(f.get('normalised_score_ci'), '.1f')}"
                          f"   (0: random actions, 100: the expert; behaviour data "
                          f"{_n(f.get('data_behaviour_normalised_score'), '.1f')})")
+    if "offline_value" in f:  # FQE on D (eval.offline_value): the same return, estimated without the environment
+        weighted = (f"   ŵ-weighted {_n(f['offline_value_weighted'], '.2f')} ± {_n(f.get('offline_value_weighted_ci'), '.2f')}"
+                    if "offline_value_weighted" in f else "")
+        lines.append(f"offline value (FQE on D, no environment) {_n(f['offline_value'], '.2f')} ± "
+                     f"{_n(f.get('offline_value_ci'), '.2f')}{weighted}")
     if w:
         ess_fraction = w.get("ess_fraction")
         lines.append(

@@ -52,6 +52,7 @@ from torchrl_wbrm.training.reporting import below_behaviour, return_fell
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
+from torchrl_wbrm.training.offline_value import offline_value_figures
 from torchrl_wbrm.training.selection import selection_record
 from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
@@ -482,6 +483,7 @@ class WBRMTrainer:
     # ------------------------------------------------------------------ weights over D
     @torch.no_grad()
     def _build_q_buffer(self) -> None:
+        self.q_train_weights = None  # the weights stage 2 gave D's training rows (None: ŵ ≡ 1)
         if self.algo.data == "expert":
             self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
             self.weight_stats = {}
@@ -503,6 +505,7 @@ class WBRMTrainer:
             if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
                 d.set("expert_like", rows.reshape(d.shape))
         w = self._store_weights(d, w, source, "weights over D")
+        self.q_train_weights = None if source == "none" else w
         if self.algo.map_data is not None:
             d = self.algo.map_data(d)
         self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
@@ -842,6 +845,11 @@ class WBRMTrainer:
         results["selection"] = selection_record(  # delivered, best and last by their online returns
             self.history, self.cfg.q.select, self.q_select_figure, episodes=self.cfg.eval.episodes,
             train_episodes=self.cfg.eval.train_episodes, steps=self.cfg.q.steps)
+        if self.cfg.eval.offline_value:  # the delivered actor's value by FQE on D: no environment
+            figures, results["offline_value"] = offline_value_figures(
+                self.actor, self.q_train_data, self.evaluator.return_quantity(), weights=self.q_train_weights,
+                steps=self.cfg.eval.offline_value_steps, seed=self.cfg.seed)
+            results["final"] = {**results["final"], **figures}
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
         check = getattr(self, "ratio_check", None)

@@ -136,6 +136,9 @@ class LQREvaluator(Evaluator):
             )
         self.true_ratio = lqr_true_density_ratio(env, expert, behaviour, behaviour_initial_std=start)
 
+    def return_quantity(self) -> tuple[float, int]:
+        return self.task.lqr_config.gamma, self.task.lqr_config.horizon  # lqr_paired_regret's discounted return
+
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         out: dict = {}
         res = lqr_paired_regret(self.task.lqr_config, policy, episodes=episodes, seed=seed)

@@ -104,6 +104,9 @@ class MinariEvaluator(Evaluator):
             self._batched[episodes] = make_minari_eval_env(self.metadata, num_envs=episodes)
         return self._batched[episodes]
 
+    def return_quantity(self) -> tuple[float, int]:
+        return 1.0, self.metadata.get("max_episode_steps") or 1000  # evaluate's undiscounted return
+
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         meta = self.metadata
         env = self.env if episodes == 1 else self.batched_env(episodes)

@@ -1,0 +1,52 @@
+"""``eval.offline_value``: the delivered actor's value by FQE on D, written to ``results.json`` beside the online
+figure and printed in the summary; it reads D only and leaves the run's own figures as they were."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.references import tiny_lqr_config
+from torchrl_wbrm.training import WBRMTrainer
+from torchrl_wbrm.training.offline_value import offline_value_figures
+from torchrl_wbrm.training.reporting import summarise
+
+pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
+
+KEYS = ("offline_value", "offline_value_ci", "offline_value_low", "offline_value_high")
+
+
+def test_the_run_records_and_prints_the_offline_value(tmp_path):
+    on = WBRMTrainer(tiny_lqr_config(eval={"offline_value": True}), tmp_path / "on", progress=False)
+    results = on.run()
+    off = WBRMTrainer(tiny_lqr_config(), tmp_path / "off", progress=False).run()
+    final = results["final"]
+    for prefix in ("offline_value", "offline_value_weighted"):  # wbrm with a learned ŵ: both estimates
+        assert final[f"{prefix}_low"] < final[prefix] < final[f"{prefix}_high"]
+        assert final[f"{prefix}_ci"] == pytest.approx((final[f"{prefix}_high"] - final[f"{prefix}_low"]) / 2)
+    # the same quantity as the online return (LQR: discounted, γ = 0.9, 20 steps): within a few units on tiny data
+    assert abs(final["offline_value"] - final["return"]) < 5.0
+    record = results["offline_value"]
+    assert record["uses_environment"] is False and record["weighted"] and record["steps"] == 1000
+    assert "γ = 0.9" in record["quantity"] and "at most 20 steps" in record["quantity"]
+    assert record["episodes"] == int(on.q_train_data["episode"].unique().numel())
+    # nothing else changes: the online figures are those of the run without it, and the history holds no estimate
+    assert {k: v for k, v in final.items() if not k.startswith("offline_value")} == off["final"]
+    assert "offline_value" not in off["final"] and "offline_value" not in off
+    history = json.loads((tmp_path / "on" / "history.json").read_text())
+    assert not any("offline_value" in r for r in history)
+    assert json.loads((tmp_path / "on" / "results.json").read_text())["final"]["offline_value"] == final["offline_value"]
+    line = [s for s in summarise(results).splitlines() if s.startswith("offline value")]
+    assert line == [f"offline value (FQE on D, no environment) {final['offline_value']:.2f} ± "
+                    f"{final['offline_value_ci']:.2f}   ŵ-weighted {final['offline_value_weighted']:.2f} ± "
+                    f"{final['offline_value_weighted_ci']:.2f}"]
+
+
+def test_without_a_ratio_there_is_one_estimate_and_an_unstated_quantity_none(tmp_path):
+    trainer = WBRMTrainer(tiny_lqr_config(algo="brm", eval={"offline_value": True, "offline_value_steps": 50}),
+                          tmp_path / "brm", progress=False)
+    results = trainer.run()
+    assert "offline_value" in results["final"] and "offline_value_weighted" not in results["final"]
+    assert results["offline_value"]["weighted"] is False and results["offline_value"]["steps"] == 50
+    figures, record = offline_value_figures(trainer.actor, trainer.q_train_data, None)
+    assert figures == {} and "does not state" in record["skipped"]
