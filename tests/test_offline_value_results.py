@@ -6,8 +6,10 @@ import json
 
 import pytest
 
+from tests.inprocess import run_script
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
+from torchrl_wbrm.training.config import EvalConfig
 from torchrl_wbrm.training.offline_value import offline_value_figures
 from torchrl_wbrm.training.reporting import summarise
 
@@ -27,7 +29,8 @@ def test_the_run_records_and_prints_the_offline_value(tmp_path):
     # the same quantity as the online return (LQR: discounted, γ = 0.9, 20 steps): within a few units on tiny data
     assert abs(final["offline_value"] - final["return"]) < 5.0
     record = results["offline_value"]
-    assert record["uses_environment"] is False and record["weighted"] and record["steps"] == 1000
+    assert record["uses_environment"] is False and record["weighted"]
+    assert record["steps"] == EvalConfig().offline_value_steps
     assert "γ = 0.9" in record["quantity"] and "at most 20 steps" in record["quantity"]
     assert record["episodes"] == int(on.q_train_data["episode"].unique().numel())
     # nothing else changes: the online figures are those of the run without it, and the history holds no estimate
@@ -40,6 +43,24 @@ def test_the_run_records_and_prints_the_offline_value(tmp_path):
     assert line == [f"offline value (FQE on D, no environment) {final['offline_value']:.2f} ± "
                     f"{final['offline_value_ci']:.2f}   ŵ-weighted {final['offline_value_weighted']:.2f} ± "
                     f"{final['offline_value_weighted_ci']:.2f}"]
+    # the command estimates it again from the run directory alone, to the same figures, and writes nothing
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "on").rglob("*")}
+    proc = run_script("recipes/offline_value.py", tmp_path / "on")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0].endswith("env lqr_exp1  algo wbrm  seed 0  delivered step 40 of 40")
+    assert f"FQE on D: {final['offline_value']:.4f} ± {final['offline_value_ci']:.4f}" in proc.stdout
+    assert f"ŵ-weighted FQE on D: {final['offline_value_weighted']:.4f}" in proc.stdout
+    assert "at most 20 steps" in proc.stdout and lines[-1].startswith("The environment was not run")
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "on").rglob("*")} == before
+
+
+def test_the_command_refuses_a_directory_without_a_finished_run(tmp_path):
+    proc = run_script("recipes/offline_value.py", tmp_path)
+    assert proc.returncode != 0 and "checkpoint.pt does not exist" in proc.stderr
+    WBRMTrainer(tiny_lqr_config(), tmp_path / "cut", progress=False).run(until=20)
+    proc = run_script("recipes/offline_value.py", tmp_path / "cut")
+    assert proc.returncode != 0 and "holds an unfinished run (stage 'q', step 20)" in proc.stderr
 
 
 def test_without_a_ratio_there_is_one_estimate_and_an_unstated_quantity_none(tmp_path):

@@ -245,7 +245,7 @@ class EvalConfig:
     seed: int = 1_000_000
     q_samples: int = 10_000
     offline_value: bool = True
-    offline_value_steps: int = 1000
+    offline_value_steps: int = 2000
 
 
 @dataclass
