@@ -32,6 +32,8 @@ __all__ = [
     "EXPERTS_DIR",
     "LOCOMOTION_TASKS",
     "LocomotionActor",
+    "commit_policies",
+    "evaluate_policy",
     "load_locomotion_policy",
     "locomotion_record",
     "train_locomotion_expert",
@@ -103,11 +105,9 @@ def load_locomotion_policy(task: str, level: str = "expert", path: str | Path | 
     except Exception as exc:  # noqa: BLE001 - unpickling errors come in many types; all mean "not our weights"
         raise ValueError(f"{path}: not a policy's weights ({type(exc).__name__}: {str(exc).splitlines()[0]}).") \
             from None
-    spaces = gym.spec(env_id)
     env = gym.make(env_id)
     obs_dim, action_dim = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
     env.close()
-    del spaces
     actor = LocomotionActor(obs_dim, action_dim)
     expected = {k: tuple(v.shape) for k, v in actor.state_dict().items()}
     if not isinstance(state, dict) or {k: tuple(getattr(v, "shape", ())) for k, v in state.items()} != expected:
@@ -220,6 +220,46 @@ def _ci95(values: np.ndarray) -> float:
     return float(1.96 * values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else float("nan")
 
 
+def commit_policies(task: str, run_dir: Path, *, seed: int, frames: int, episodes: int = 100,
+                    directory: Path = EXPERTS_DIR, log=print) -> dict:
+    """Measure a training run's last checkpoint (the expert) and the checkpoint whose logged return is closest to a
+    third of it (the medium policy) over ``episodes`` episodes each, and write them with their records into
+    ``directory`` as ``<task>-expert`` and ``<task>-medium`` (``.pt`` and ``.json``). A record states the training
+    seed and budget, the return's mean ± 95% CI over the episodes and ``test_bar``, 90% of their 10th percentile:
+    the bar a test holds the policy's mean return over a few episodes to."""
+    env_id = _task_id(task)
+    checkpoints = sorted(run_dir.glob(f"{task}-*.pt"))
+    if not checkpoints:
+        raise FileNotFoundError(f"{run_dir} holds no {task}-<frames>.pt checkpoint.")
+    logged = {int(e["frames"]): e for e in json.loads((run_dir / f"{task}-log.json").read_text(encoding="utf-8"))}
+    by_frames = {int(p.stem.rsplit("-", 1)[1]): p for p in checkpoints}
+    last = max(by_frames)
+    out = {}
+    expert_returns = None
+    for level in ("expert", "medium"):
+        if level == "expert":
+            chosen = last
+        else:
+            target = float(expert_returns.mean()) / 3
+            chosen = min((f for f in by_frames if f < last and f in logged),
+                         key=lambda f: abs(logged[f]["return_mean"] - target))
+        actor = load_locomotion_policy(task, path=by_frames[chosen])
+        returns = evaluate_policy(actor, env_id, episodes, seed=1_000_000)
+        if level == "expert":
+            expert_returns = returns
+        record = {"env_id": env_id, "level": level, "algorithm": "SAC (torchrl SACLoss), deterministic actor",
+                  "seed": seed, "frames": chosen, "budget_frames": frames, "episodes": episodes,
+                  "evaluation_seeds": f"1000000..{1_000_000 + episodes - 1}",
+                  "return_mean": round(float(returns.mean()), 1), "return_ci95": round(_ci95(returns), 1),
+                  "return_min": round(float(returns.min()), 1),
+                  "test_bar": round(0.9 * float(np.percentile(returns, 10)), 1)}
+        torch.save(actor.state_dict(), directory / f"{task}-{level}.pt")
+        (directory / f"{task}-{level}.json").write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+        log(json.dumps(record))
+        out[level] = record
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Train a SAC expert for a MuJoCo locomotion task with torchrl, "
                                                  "or measure a saved policy's return.")
@@ -233,8 +273,15 @@ def main(argv: list[str] | None = None) -> None:
                         help="instead of training, measure the return of these weights over --episodes")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1: one core)")
+    parser.add_argument("--commit", action="store_true",
+                        help="instead of training, measure the run in --out (its last checkpoint and the one nearest a "
+                             "third of its return) and write them as the committed expert and medium policies")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.commit:
+        EXPERTS_DIR.mkdir(exist_ok=True)
+        commit_policies(args.task, args.out, seed=args.seed, frames=args.frames, episodes=args.episodes)
+        return
     if args.measure is not None:
         actor = load_locomotion_policy(args.task, path=args.measure)
         returns = evaluate_policy(actor, LOCOMOTION_TASKS[args.task], args.episodes, seed=1_000_000)
