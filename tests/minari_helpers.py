@@ -25,6 +25,7 @@ MINARI_RUN = [
     "ratio.num_cells=[64,64]",
     "q.num_cells=[64,64]",
     "q.actor_num_cells=[64,64]",
+    "eval.offline_value=false",
     "eval.episodes=10",
     "eval.train_episodes=3",
     "checkpoint_every=0",

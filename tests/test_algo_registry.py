@@ -244,7 +244,8 @@ def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path, monkeypatch):
     monkeypatch.setattr(runs, "subprocess", SimpleNamespace(run=_in_this_process))
 
     cell = {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "brm", "overrides": ["algo=brm"]}
-    budget = [*study_budget("quick"), "q.steps=4", "q.eval_every=4", "eval.episodes=10", "eval.train_episodes=10"]
+    budget = [*study_budget("quick"), "q.steps=4", "q.eval_every=4", "eval.episodes=10", "eval.train_episodes=10",
+              "eval.offline_value=false"]
     run_cells([cell], [0, 1], budget, tmp_path, launcher="joblib", launcher_args=["hydra.launcher.n_jobs=1"])
     for seed in (0, 1):
         results = json.loads((cell_dir(tmp_path, cell, seed) / "results.json").read_text())

@@ -46,7 +46,7 @@ RECIPE_TINY = [
     "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
     "ratio.steps=20", "ratio.eval_every=10", "ratio.num_cells=[16,16]",
     "q.steps=20", "q.eval_every=10", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
-    "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=400", "baselines.cql.num_random=2",
+    "eval.offline_value=false", "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=400", "baselines.cql.num_random=2",
 ]
 
 

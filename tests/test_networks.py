@@ -146,7 +146,7 @@ def _trainer(tmp_path, *overrides, resume=False):
         cfg = compose("wbrm_offline", overrides=[
             "env.lqr_data.behaviour_episodes=60", "env.lqr_data.expert_episodes=30", "env.lqr_data.parallel_envs=30",
             "ratio.steps=10", "ratio.eval_every=5", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
-            "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=200", "logger=none", "plots=false",
+            "eval.offline_value=false", "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=200", "logger=none", "plots=false",
             *overrides])
     return WBRMTrainer(cfg, tmp_path, progress=False, resume=resume)
 

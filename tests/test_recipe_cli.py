@@ -25,7 +25,7 @@ from tests.references import ROOT
 TINY = [
     "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
     "ratio.steps=10", "ratio.eval_every=5", "ratio.num_cells=[8,8]", "q.steps=10", "q.eval_every=5",
-    "q.num_cells=[8,8]", "q.actor_num_cells=[8,8]", "eval.episodes=10", "eval.train_episodes=10",
+    "q.num_cells=[8,8]", "q.actor_num_cells=[8,8]", "eval.offline_value=false", "eval.episodes=10", "eval.train_episodes=10",
     "eval.q_samples=100",
 ]
 

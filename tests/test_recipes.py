@@ -26,6 +26,7 @@ TINY_LQR = [
     "q.eval_every=10",
     "q.num_cells=[16,16]",
     "q.actor_num_cells=[16,16]",
+    "eval.offline_value=false",
     "eval.episodes=50",
     "eval.train_episodes=20",
     "eval.q_samples=400",
@@ -40,6 +41,7 @@ TINY_MC = [
     "q.eval_every=10",
     "q.num_cells=[16,16]",
     "q.actor_num_cells=[16,16]",
+    "eval.offline_value=false",
     "eval.episodes=1",
     "eval.train_episodes=1",
 ]

@@ -26,7 +26,7 @@ from torchrl_wbrm.training.rundir import RunDirInUse, claim_run_dir, take_claim
 ROOT = Path(__file__).resolve().parents[1]
 #: the recipe's tiny budget (the issue's, with tiny data and networks)
 TINY = [
-    "ratio.steps=20", "q.steps=40", "q.eval_every=20", "eval.episodes=50", "eval.train_episodes=20", "logger=none",
+    "ratio.steps=20", "q.steps=40", "q.eval_every=20", "eval.offline_value=false", "eval.episodes=50", "eval.train_episodes=20", "logger=none",
     "plots=false", "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20",
     "env.lqr_data.parallel_envs=20", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]", "eval.q_samples=300",
     "ratio.num_cells=[16,16]",

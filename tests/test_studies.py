@@ -23,7 +23,7 @@ TINY_BUDGET = [
     "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20", "env.lqr_data.parallel_envs=20",
     "ratio.steps=30", "ratio.batch_size=64", "ratio.eval_every=10", "ratio.num_cells=[16,16]",
     "q.steps=40", "q.batch_size=32", "q.eval_every=20", "q.num_cells=[16,16]", "q.actor_num_cells=[16,16]",
-    "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=300",
+    "eval.offline_value=false", "eval.episodes=50", "eval.train_episodes=20", "eval.q_samples=300",
 ]
 
 

@@ -193,7 +193,8 @@ def test_second_ctrl_c_names_the_checkpoint_it_leaves(tmp_path, monkeypatch, cap
     monkeypatch.setattr(WBRMTrainer, "run", interrupted)
     run_dir = tmp_path / "run"
     monkeypatch.setattr(sys, "argv", [
-        "wbrm_offline.py", "ratio.steps=10", "q.steps=20", "eval.episodes=50", "eval.train_episodes=20",
+        "wbrm_offline.py", "ratio.steps=10", "q.steps=20", "eval.offline_value=false", "eval.episodes=50",
+        "eval.train_episodes=20",
         "eval.q_samples=300", "logger=none", "env.lqr_data.behaviour_episodes=40", "env.lqr_data.expert_episodes=20",
         "env.lqr_data.parallel_envs=20", f"hydra.run.dir={run_dir}", "hydra/job_logging=none",
         "hydra/hydra_logging=none",
