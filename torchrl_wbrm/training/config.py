@@ -237,7 +237,9 @@ class EvalConfig:
             environment (:mod:`torchrl_wbrm.training.offline_value`: FQE on D's training episodes, and ŵ-weighted
             where stage 2 weighted them), the same quantity as the online ``return``; written to ``results.json`` as
             ``final.offline_value`` with its 95% bootstrap interval over D's episodes.
-        offline_value_steps: FQE's gradient steps for each of those estimates.
+        offline_value_steps: FQE's gradient steps for each of those estimates. The default fits LQR's 20-step
+            return (exp1: within 0.2 of the online return); a return over hundreds of undiscounted steps needs far
+            more (the MountainCar Minari example's: 250 at 2000 steps and 211 at 5000 against 95 online).
     """
 
     episodes: Optional[int] = None
