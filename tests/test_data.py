@@ -253,3 +253,22 @@ def test_a_shifted_behaviour_start_moves_the_behaviour_data_only():
         env.lqr_data.behaviour_initial_std = bad
         with pytest.raises(ValueError, match="env.lqr_data.behaviour_initial_std"):
             get_task(env).validate()
+
+
+def test_a_save_never_writes_through_links_planted_under_its_sets_names(tmp_path, lqr_data):
+    """A data cache folder from someone else may hold links named like the sets: saving replaces the links with the
+    sets and leaves what they pointed to untouched; a second save over the first gives the same data."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep.txt").write_text("theirs")
+    root = tmp_path / "ds"
+    root.mkdir()
+    for name in ("transitions", "behaviour_samples", "expert_samples"):
+        (root / name).symlink_to(outside, target_is_directory=True)
+    lqr_data.save(root)
+    assert sorted(p.name for p in outside.iterdir()) == ["keep.txt"] and (outside / "keep.txt").read_text() == "theirs"
+    assert not any((root / name).is_symlink() for name in ("transitions", "behaviour_samples", "expert_samples"))
+    lqr_data.save(root)  # over an earlier save
+    loaded = OfflineDatasets.load(root)
+    assert (loaded.transitions[:]["observation"] == lqr_data.transitions[:]["observation"]).all()
+    assert not [p for p in root.iterdir() if p.name.startswith(".")]  # no temporary folder left behind

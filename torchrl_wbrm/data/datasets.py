@@ -19,6 +19,7 @@ import json
 import math
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -367,7 +368,16 @@ class OfflineDatasets:
         files = {}
         for name in PARTS:
             td = sets[name]
-            td.memmap(path / name)
+            # written into a folder made fresh for it (nothing under it can be a planted link), then moved into place:
+            # an old set, or a link planted under the set's name, is replaced, never written through
+            fresh = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=path))
+            td.memmap(fresh)
+            target = path / name
+            if target.is_symlink() or target.is_file():
+                target.unlink()
+            elif target.exists():
+                shutil.rmtree(target)
+            os.replace(fresh, target)
             entries = {}
             for key in td.keys(True, True):
                 key = key if isinstance(key, tuple) else (key,)
