@@ -115,7 +115,7 @@ def test_the_datasets_of_a_task_hold_their_make_up(tmp_path):
     for pp in (5, 40):
         d = made[row[f"random_expert{pp:02d}"]]
         assert d["transitions"] >= 3000 and d["expert_transitions"] / d["transitions"] >= pp / 100
-        meta = json.loads((tmp_path / row[f"random_expert{pp:02d}"] / "metadata.json").read_text())
+        meta = json.loads(next((tmp_path / row[f"random_expert{pp:02d}"]).rglob("metadata.json")).read_text())
         assert len(meta["expert_episode_ids"]) == d["expert_episodes"] >= 1
     # an existing id is refused before anything is collected
     with pytest.raises(FileExistsError):
