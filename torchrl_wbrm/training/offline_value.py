@@ -17,14 +17,12 @@ stage 2 used (ŵ shaped by ``ratio.*``, stored as ``"density_ratio"``):
 - the ``offline_value`` record: the quantity in words, the episodes averaged, the FQE steps and
   ``uses_environment: false``.
 
-:func:`offline_value_of_run` makes the same estimate for a finished run directory (``recipes/offline_value.py``):
-its checkpoint read with ``torch.load(weights_only=True)``, the run's config from it, D rebuilt as the run built it.
+``recipes/offline_value.py`` makes the same estimate for a finished run directory: its checkpoint read with
+``torch.load(weights_only=True)``, the run's config from it, D rebuilt as the run built it.
 """
 from __future__ import annotations
 
 import copy
-import os
-from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
@@ -32,7 +30,7 @@ from tensordict.nn import TensorDictModule
 
 from torchrl_wbrm.ope.offline_value import OfflineValue, estimate_offline_value
 
-__all__ = ["offline_value_figures", "offline_value_of_run"]
+__all__ = ["offline_value_figures"]
 
 
 def _figures(prefix: str, est: OfflineValue) -> dict:
@@ -69,56 +67,3 @@ def offline_value_figures(
     record = {"quantity": unweighted.quantity, "episodes": unweighted.episodes, "steps": steps,
               "weighted": weights is not None, "uses_environment": False}
     return final, record
-
-
-def _plain(value, key: str = "config") -> None:
-    """Refuse a saved config value that OmegaConf would resolve (``${...}``): the record is data, never evaluated."""
-    if isinstance(value, dict):
-        for k, v in value.items():
-            _plain(v, f"{key}.{k}")
-    elif isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            _plain(v, f"{key}[{i}]")
-    elif isinstance(value, str) and "${" in value:
-        raise ValueError(f"The checkpoint's {key} holds an interpolation ('${{...}}'), not a plain value: refused.")
-
-
-def offline_value_of_run(run_dir: str | os.PathLike, *, steps: int | None = None) -> tuple[dict, dict, dict]:
-    """The offline value of the policy a finished run delivered, as :func:`offline_value_figures` computes it at
-    the end of the run: ``(final figures, record, run)`` where ``run`` names the env, algo, seed, step and the
-    delivered step. ``run_dir/checkpoint.pt`` is read with ``torch.load(weights_only=True)``
-    (:func:`~torchrl_wbrm.training.checkpoint.read_checkpoint`); the run's config is the one saved in it, and D is
-    rebuilt from it (the data cache or dataset it names, or the same seed). ``steps``: FQE's steps (default the run's
-    ``eval.offline_value_steps``). No policy episode is run; nothing is written to ``run_dir``."""
-    from omegaconf import OmegaConf
-
-    from torchrl_wbrm.training.checkpoint import read_checkpoint
-    from torchrl_wbrm.training.config import WBRMConfig
-    from torchrl_wbrm.training.trainer import WBRMTrainer
-
-    run_dir = Path(run_dir)
-    path = run_dir / "checkpoint.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist: give the directory of a finished run (one that holds its "
-                                "checkpoint.pt; a multi-seed run holds one per seed, in seed_<s>/).")
-    saved = read_checkpoint(path)
-    if saved.get("state", {}).get("stage") != "done":
-        state = saved.get("state", {})
-        raise ValueError(f"{run_dir} holds an unfinished run (stage {state.get('stage')!r}, step {state.get('step')}): "
-                         f"finish it (resume={run_dir}) first; its delivered policy is chosen at the end.")
-    record = dict(saved["config"])
-    _plain(record)
-    record.pop("seeds", None)
-    cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), record))
-    trainer = WBRMTrainer(cfg, run_dir, resume=True, logger=None, progress=False)
-    try:
-        evaluations = [r for r in trainer.history if r["stage"] == "q"]
-        delivered = evaluations[-1].get("selected_step", trainer.state["step"]) if evaluations else None
-        figures, summary = offline_value_figures(
-            trainer.actor, trainer.q_train_data, trainer.evaluator.return_quantity(), weights=trainer.q_train_weights,
-            steps=steps or cfg.eval.offline_value_steps, seed=cfg.seed)
-    finally:
-        trainer.release()
-    run = {"env": cfg.env.name, "algo": cfg.algo, "seed": cfg.seed, "step": trainer.state["step"],
-           "delivered_step": delivered}
-    return figures, summary, run
