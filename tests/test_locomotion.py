@@ -121,3 +121,106 @@ def test_the_datasets_of_a_task_hold_their_make_up(tmp_path):
         make_locomotion_task(task, tmp_path, transitions=3000, expert_shares=(5,), log=lambda line: None)
     with pytest.raises(ValueError, match="integer percentage"):
         make_locomotion_task(task, tmp_path / "other", transitions=3000, expert_shares=(0,))
+
+
+def _tiny_run(out, **settings):
+    """A Hopper SAC run of two 50-frame segments (25 random frames, then one update per frame) on tiny networks."""
+    from torchrl_wbrm.policies.locomotion import _TrainConfig
+
+    base = dict(task="hopper", seed=0, frames=100, out=out, init_random_frames=25, frames_per_batch=25,
+                batch_size=16, save_every=50, eval_episodes=1, hidden=16)
+    base.update(settings)
+    return _TrainConfig(**base)
+
+
+def _state(out):
+    return torch.load(out / "state.pt", weights_only=True)
+
+
+def _assert_same(a, b, where=""):
+    if isinstance(a, dict):
+        assert sorted(a, key=str) == sorted(b, key=str), where
+        for key in a:
+            _assert_same(a[key], b[key], f"{where}/{key}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}/{i}")
+    elif torch.is_tensor(a):
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), where
+    else:
+        assert a == b, where
+
+
+@needs_mujoco
+def test_a_run_killed_mid_segment_resumes_bit_identical_to_one_never_stopped(tmp_path, monkeypatch):
+    from torchrl_wbrm.policies import locomotion
+
+    straight = _tiny_run(tmp_path / "straight")
+    assert locomotion.train_locomotion_expert(straight, log=lambda line: None)["frames"] == 100
+
+    # the second run dies at the end of its second segment's updates, before that segment's checkpoint
+    evaluate = locomotion.evaluate_policy
+    calls = []
+
+    def dies_on_the_second_call(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    cut = _tiny_run(tmp_path / "cut")
+    monkeypatch.setattr(locomotion, "evaluate_policy", dies_on_the_second_call)
+    with pytest.raises(KeyboardInterrupt):
+        locomotion.train_locomotion_expert(cut, log=lambda line: None)
+    monkeypatch.setattr(locomotion, "evaluate_policy", evaluate)
+    assert _state(cut.out)["frames"] == 50 and not (cut.out / "hopper-00000100.pt").exists()
+    torch.manual_seed(12345)  # whatever the process did since: the state brings its own generators
+    lines = []
+    locomotion.train_locomotion_expert(cut, log=lines.append)
+    assert json.loads(lines[0])["frames"] == 50  # it said where it resumed
+
+    a, b = _state(straight.out), _state(cut.out)
+    assert a["frames"] == b["frames"] == 100
+    for key in ("loss", "optim", "torch_rng", "numpy_rng", "buffer", "settings"):
+        _assert_same(a[key], b[key], key)
+    assert a["loss"]["log_alpha"].item() != 0.0  # the updates ran: the temperature moved
+    assert {k for k in a["loss"] if k.startswith("target_")}, "the target networks are part of the state"
+    assert len(a["buffer"]["observation"]) == 100 and "loc" not in a["buffer"]
+    assert [e["return_mean"] for e in a["log"]] == [e["return_mean"] for e in b["log"]]
+    for frames in (50, 100):
+        name = f"hopper-{frames:08d}.pt"
+        _assert_same(torch.load(straight.out / name, weights_only=True), torch.load(cut.out / name, weights_only=True))
+    # a finished run, called again, trains nothing more
+    assert locomotion.train_locomotion_expert(cut, log=lambda line: None)["frames"] == 100
+
+
+@needs_mujoco
+def test_a_resume_with_other_settings_or_over_foreign_files_is_refused(tmp_path):
+    import os
+
+    from torchrl_wbrm.policies import locomotion
+
+    cfg = _tiny_run(tmp_path / "run", frames=50)
+    locomotion.train_locomotion_expert(cfg, log=lambda line: None)
+    before = (cfg.out / "state.pt").read_bytes()
+    with pytest.raises(ValueError, match=r"state.pt: the run was started with --frames 50, not 100;"):
+        locomotion.train_locomotion_expert(_tiny_run(cfg.out, frames=100), log=lambda line: None)
+    with pytest.raises(ValueError, match=r"started with --seed 0, not 1;"):
+        locomotion.train_locomotion_expert(_tiny_run(cfg.out, seed=1), log=lambda line: None)
+    assert (cfg.out / "state.pt").read_bytes() == before
+    # checkpoints with no state are not overwritten
+    (cfg.out / "state.pt").rename(tmp_path / "kept.pt")
+    with pytest.raises(FileExistsError, match="holds hopper checkpoints but no state.pt"):
+        locomotion.train_locomotion_expert(cfg, log=lambda line: None)
+    # a crafted state runs nothing
+    marker = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.makedirs, (str(marker),))
+
+    torch.save({"format": 1, "settings": Evil()}, cfg.out / "state.pt")
+    with pytest.raises(ValueError, match="state.pt: not a run state"):
+        locomotion.train_locomotion_expert(cfg, log=lambda line: None)
+    assert not marker.exists()

@@ -10,6 +10,12 @@ return, so that an earlier checkpoint can serve as a *medium* policy::
 
     python -m torchrl_wbrm.policies.locomotion --task hopper --seed 0 --frames 300000 --out experts_run
 
+A run outlives its process: at each checkpoint the whole training state (networks, target networks, temperature,
+optimiser, random generators, replay buffer, log) replaces ``<out>/state.pt`` in one atomic write, and rerunning
+the same command continues from it, even after the process was killed. Each segment of ``--save-every`` frames
+collects from an environment reset with a seed drawn from the run's seed and the segment's index, so a resumed run
+is bit-identical to an uninterrupted one. A state written with other settings is refused, naming the setting.
+
 The weights used by the datasets (:mod:`torchrl_wbrm.data.benchmark`) are committed in
 ``torchrl_wbrm/policies/experts/<task>-<level>.pt``, each with a ``.json`` record (seed, budget, measured return
 and the bar a test holds it to). Loading never runs code: the file is read with ``torch.load(weights_only=True)``
@@ -20,6 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -152,10 +160,91 @@ class _TrainConfig:
     tau: float = 0.005
     save_every: int = 25_000
     eval_episodes: int = 10
+    hidden: int = _HIDDEN
 
 
-def train_locomotion_expert(cfg: _TrainConfig) -> dict:
-    """Train a SAC expert with torchrl's collector, buffer, loss and updater; returns the last evaluation."""
+#: the settings a run's state is written with: a resume must give the same ones
+_RUN_SETTINGS = ("task", "seed", "frames", "save_every", "init_random_frames", "frames_per_batch", "batch_size", "lr",
+                 "gamma", "tau", "eval_episodes", "hidden")
+#: the command-line names of the settings that have one
+_FLAGS = {"task": "--task", "seed": "--seed", "frames": "--frames", "save_every": "--save-every"}
+#: what the replay buffer keeps of a collected transition: what ``SACLoss`` reads
+_BUFFER_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
+                ("next", "terminated"))
+_STATE = "state.pt"
+_STATE_FORMAT = 1
+
+
+def _segment_seed(seed: int, segment: int) -> int:
+    """The reset seed of the environment for segment ``segment`` of a run seeded ``seed``."""
+    return int(np.random.SeedSequence([seed, segment]).generate_state(1)[0])
+
+
+def _write_atomic(path: Path, write) -> None:
+    """``write(file)`` into a fresh temporary file beside ``path``, fsync, then ``os.replace`` it onto ``path``."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # the mode an ordinary open would give, not mkstemp's 0600
+        with os.fdopen(fd, "wb") as file:
+            write(file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _settings(cfg: _TrainConfig) -> dict:
+    return {key: getattr(cfg, key) for key in _RUN_SETTINGS}
+
+
+def _read_state(path: Path, cfg: _TrainConfig) -> dict:
+    """The run state at ``path``, read with ``weights_only=True``; refused in one line naming the file, or the
+    setting it was written with that ``cfg`` does not give."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - unpickling errors come in many types; all mean "not our state"
+        raise ValueError(f"{path}: not a run state ({type(exc).__name__}: {str(exc).splitlines()[0]}).") from None
+    if not isinstance(state, dict) or state.get("format") != _STATE_FORMAT or not isinstance(state.get("settings"),
+                                                                                               dict):
+        raise ValueError(f"{path}: not a run state of this trainer (format {_STATE_FORMAT}).")
+    for key, given in _settings(cfg).items():
+        saved = state["settings"].get(key)
+        if saved != given:
+            name = _FLAGS.get(key, key)
+            raise ValueError(f"{path}: the run was started with {name} {saved!r}, not {given!r}; rerun it with the "
+                             f"same settings, or give another --out.")
+    frames = state.get("frames")
+    if not isinstance(frames, int) or not 0 < frames <= cfg.frames or (frames % cfg.save_every
+                                                                        and frames != cfg.frames):
+        raise ValueError(f"{path}: frames {frames!r} is not a segment end of a {cfg.frames}-frame run.")
+    return state
+
+
+def _numpy_rng_state() -> dict:
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"name": name, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+            "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
+
+
+def _set_numpy_rng_state(state: dict) -> None:
+    np.random.set_state((state["name"], state["keys"].numpy().astype(np.uint32), state["pos"], state["has_gauss"],
+                         state["cached_gaussian"]))
+
+
+def train_locomotion_expert(cfg: _TrainConfig, log=print) -> dict:
+    """Train a SAC expert with torchrl's collector, buffer, loss and updater; returns the last evaluation.
+
+    The run is cut into segments of ``cfg.save_every`` frames, each with its own collector over an environment
+    reset with a seed drawn from ``(cfg.seed, segment)``. At each segment's end the deterministic actor
+    (``<task>-<frames>.pt``) and the log (``<task>-log.json``) are written, then the whole state (networks, target
+    networks, temperature, optimiser, random generators, replay buffer, log) replaces ``cfg.out/state.pt`` in one
+    atomic write. Called again with the same settings, it continues from that state, and the run is bit-identical
+    to one never interrupted; other settings are refused in one line naming the setting."""
+    from tensordict import TensorDict
     from tensordict.nn import NormalParamExtractor, TensorDictModule
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -164,56 +253,100 @@ def train_locomotion_expert(cfg: _TrainConfig) -> dict:
     from torchrl.objectives import SACLoss, SoftUpdate
 
     env_id = _task_id(cfg.task)
+    for key in ("frames", "save_every", "init_random_frames"):
+        value = getattr(cfg, key)
+        if value < 0 or value % cfg.frames_per_batch or (value == 0 and key != "init_random_frames"):
+            raise ValueError(f"{_FLAGS.get(key, key)} {value} must be a positive multiple of frames_per_batch "
+                             f"({cfg.frames_per_batch}).")
+    state_path = cfg.out / _STATE
+    state = _read_state(state_path, cfg) if state_path.is_file() else None
+    if state is None and (any(cfg.out.glob(f"{cfg.task}-*.pt")) or (cfg.out / f"{cfg.task}-log.json").exists()):
+        raise FileExistsError(f"{cfg.out} holds {cfg.task} checkpoints but no {_STATE} to continue from; give "
+                              f"another --out.")
+
+    def make_env():
+        return TransformedEnv(GymEnv(env_id), Compose(DoubleToFloat()))
+
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    env = TransformedEnv(GymEnv(env_id), Compose(DoubleToFloat()))
-    env.set_seed(cfg.seed)
+    env = make_env()
     obs_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
+    action_spec = env.action_spec
+    env.close()
 
-    deterministic = LocomotionActor(obs_dim, action_dim)
+    deterministic = LocomotionActor(obs_dim, action_dim, cfg.hidden)
     actor_module = TensorDictModule(nn.Sequential(deterministic.net, NormalParamExtractor()),
                                     in_keys=["observation"], out_keys=["loc", "scale"])
-    actor = ProbabilisticActor(actor_module, in_keys=["loc", "scale"], spec=env.action_spec,
+    actor = ProbabilisticActor(actor_module, in_keys=["loc", "scale"], spec=action_spec,
                                distribution_class=TanhNormal, return_log_prob=False,
-                               distribution_kwargs={"low": env.action_spec.space.low,
-                                                    "high": env.action_spec.space.high})
-    qvalue = ValueOperator(MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=[_HIDDEN, _HIDDEN],
+                               distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high})
+    qvalue = ValueOperator(MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=[cfg.hidden, cfg.hidden],
                                activation_class=nn.ReLU), in_keys=["observation", "action"])
-    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=env.action_spec)
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=action_spec)
     loss.make_value_estimator(gamma=cfg.gamma)
     updater = SoftUpdate(loss, tau=cfg.tau)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
-
-    collector = Collector(env, actor, frames_per_batch=cfg.frames_per_batch, total_frames=cfg.frames,
-                          init_random_frames=cfg.init_random_frames)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.frames), batch_size=cfg.batch_size)
+
+    frames, entries, elapsed = 0, [], 0.0
+    if state is not None:
+        try:
+            loss.load_state_dict(state["loss"])
+            optim.load_state_dict(state["optim"])
+            rows = TensorDict(state["buffer"], batch_size=[state["frames"]]).unflatten_keys(".")
+            if set(rows.keys(True, True)) != set(_BUFFER_KEYS):
+                raise ValueError(f"the buffer holds {list(rows.keys(True, True))}, not {list(_BUFFER_KEYS)}")
+            buffer.extend(rows)
+            torch.set_rng_state(state["torch_rng"])
+            _set_numpy_rng_state(state["numpy_rng"])
+            frames, entries, elapsed = state["frames"], list(state["log"]), float(state["elapsed"])
+        except Exception as exc:  # noqa: BLE001 - a state that does not fit this run, whatever the reason
+            raise ValueError(f"{state_path}: does not fit this run ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0]}).") from None
+        log(json.dumps({"resumed": str(state_path), "frames": frames}))
     cfg.out.mkdir(parents=True, exist_ok=True)
-    log = []
-    frames, next_save, start = 0, cfg.save_every, time.time()
-    for batch in collector:
-        buffer.extend(batch.reshape(-1))
-        frames += batch.numel()
-        if frames >= cfg.init_random_frames:
-            for _ in range(batch.numel()):
-                sample = buffer.sample()
-                losses = loss(sample)
-                total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
-                optim.zero_grad()
-                total.backward()
-                optim.step()
-                updater.step()
-        if frames >= next_save or frames >= cfg.frames:
-            next_save += cfg.save_every
-            returns = evaluate_policy(deterministic, env_id, cfg.eval_episodes, seed=10_000 + frames)
-            entry = {"frames": frames, "return_mean": float(returns.mean()), "return_std": float(returns.std()),
-                     "seconds": round(time.time() - start, 1)}
-            log.append(entry)
-            torch.save(deterministic.state_dict(), cfg.out / f"{cfg.task}-{frames:08d}.pt")
-            (cfg.out / f"{cfg.task}-log.json").write_text(json.dumps(log, indent=1), encoding="utf-8")
-            print(json.dumps(entry), flush=True)
-    collector.shutdown()
-    return log[-1]
+    for pattern in (f".{_STATE}.*.tmp", f".{cfg.task}-*.tmp"):  # this trainer's writes cut short by a kill
+        for stale in cfg.out.glob(pattern):
+            stale.unlink()
+    start = time.time()
+    while frames < cfg.frames:
+        segment = frames // cfg.save_every
+        env = make_env()
+        env.set_seed(_segment_seed(cfg.seed, segment))
+        collector = Collector(env, actor, frames_per_batch=cfg.frames_per_batch,
+                              total_frames=min(cfg.save_every, cfg.frames - frames),
+                              init_random_frames=max(0, cfg.init_random_frames - frames) or None,
+                              auto_register_policy_transforms=False)
+        for batch in collector:
+            buffer.extend(batch.reshape(-1).select(*_BUFFER_KEYS))
+            frames += batch.numel()
+            if frames >= cfg.init_random_frames:
+                for _ in range(batch.numel()):
+                    losses = loss(buffer.sample())
+                    total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
+                    optim.zero_grad()
+                    total.backward()
+                    optim.step()
+                    updater.step()
+        collector.shutdown()
+        returns = evaluate_policy(deterministic, env_id, cfg.eval_episodes, seed=10_000 + frames)
+        entry = {"frames": frames, "return_mean": float(returns.mean()), "return_std": float(returns.std()),
+                 "seconds": round(elapsed + time.time() - start, 1)}
+        entries.append(entry)
+        _write_atomic(cfg.out / f"{cfg.task}-{frames:08d}.pt", lambda f: torch.save(deterministic.state_dict(), f))
+        _write_atomic(cfg.out / f"{cfg.task}-log.json", lambda f: f.write(json.dumps(entries, indent=1).encode()))
+        rows = buffer[: len(buffer)].flatten_keys(".")
+        snapshot = {"format": _STATE_FORMAT, "settings": _settings(cfg), "frames": frames, "log": entries,
+                    "elapsed": elapsed + time.time() - start, "loss": loss.state_dict(), "optim": optim.state_dict(),
+                    "torch_rng": torch.get_rng_state(), "numpy_rng": _numpy_rng_state(),
+                    "buffer": {key: rows.get(key) for key in rows.keys()}}
+        log(json.dumps(entry))
+        written = time.time()
+        _write_atomic(state_path, lambda f, snapshot=snapshot: torch.save(snapshot, f))
+        log(json.dumps({"state": str(state_path), "frames": frames, "bytes": state_path.stat().st_size,
+                        "write_seconds": round(time.time() - written, 2)}))
+    return entries[-1]
 
 
 def _ci95(values: np.ndarray) -> float:
@@ -267,8 +400,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--frames", type=int, default=300_000, help="environment steps (one update per step)")
     parser.add_argument("--out", type=Path, default=Path("experts_run"),
-                        help="folder for the checkpoints and the training log")
-    parser.add_argument("--save-every", type=int, default=25_000)
+                        help="folder for the checkpoints, the training log and the run's state (state.pt): rerun "
+                             "the same command to continue a run from its last checkpoint")
+    parser.add_argument("--save-every", type=int, default=25_000,
+                        help="frames per segment: a checkpoint, an evaluation and the run's state after each")
     parser.add_argument("--measure", type=Path, default=None,
                         help="instead of training, measure the return of these weights over --episodes")
     parser.add_argument("--episodes", type=int, default=100)
@@ -289,8 +424,11 @@ def main(argv: list[str] | None = None) -> None:
                           "return_mean": round(float(returns.mean()), 1), "return_ci95": round(_ci95(returns), 1),
                           "return_min": round(float(returns.min()), 1)}))
         return
-    train_locomotion_expert(_TrainConfig(task=args.task, seed=args.seed, frames=args.frames, out=args.out,
-                                         save_every=args.save_every))
+    try:
+        train_locomotion_expert(_TrainConfig(task=args.task, seed=args.seed, frames=args.frames, out=args.out,
+                                             save_every=args.save_every))
+    except (ValueError, FileExistsError) as exc:
+        raise SystemExit(f"error: {exc}") from None
 
 
 if __name__ == "__main__":
