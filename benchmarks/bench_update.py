@@ -51,7 +51,7 @@ from torchrl_wbrm.data import OfflineDatasets, make_replay_buffer  # noqa: E402
 from torchrl_wbrm.algos import AlgoContext, adam_options, build_algo  # noqa: E402
 from torchrl_wbrm.algos.base import descend  # noqa: E402
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler  # noqa: E402
-from torchrl_wbrm.data.tasks import get_task  # noqa: E402
+from torchrl_wbrm.tasks import get_task  # noqa: E402
 from torchrl_wbrm.modules import DensityRatioNetwork  # noqa: E402
 from torchrl_wbrm.objectives import RobustDensityRatioLoss  # noqa: E402
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate  # noqa: E402

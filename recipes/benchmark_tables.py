@@ -266,7 +266,7 @@ def main(argv=None) -> None:
 
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
     from torchrl_wbrm.data.minari_data import minari_data_root
-    from torchrl_wbrm.data.tasks import MinariTask
+    from torchrl_wbrm.tasks import MinariTask
     from torchrl_wbrm.training.runs import run_cells
 
     few = args.few_demonstrations
@@ -282,7 +282,7 @@ def main(argv=None) -> None:
             sizes = dict(expert_episodes=2, behaviour_episodes=10, reference_episodes=3) if args.quick else {}
             rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)
             print(f"wrote the datasets of {', '.join(r['task'] for r in rows)} under {data_path}")
-        steps, eval_every = (int(base_settings.get(k, MinariTask.TRAINING_DEFAULTS[k]))
+        steps, eval_every = (int(base_settings.get(k, getattr(MinariTask.TRAINING_DEFAULTS.q, k.split(".")[1])))
                              for k in BUDGET_KEYS)
         if few:
             cells = few_demonstration_cells(args.tasks, args.expert_episodes, args.expert_shares, args.methods,

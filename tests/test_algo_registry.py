@@ -1,4 +1,4 @@
-"""One file per algorithm (torchrl_wbrm/algos/), one task object per env (torchrl_wbrm/data/tasks/), and the recipes'
+"""One file per algorithm (torchrl_wbrm/algos/), one task object per env (torchrl_wbrm/tasks/), and the recipes'
 lists read from them: an algorithm registered anywhere is a valid ``algo=`` of the recipe, has its Hydra node and is
 listed by the studies and the configuration guide (docs/guides/configuration.md)."""
 from __future__ import annotations
@@ -19,8 +19,8 @@ from omegaconf import OmegaConf
 from torchrl_wbrm.algos import ALGOS, algo_names, algo_table, build_algo, get_algo, register_algo, unregister_algo
 from torchrl_wbrm.algos.brm import build_brm
 from torchrl_wbrm.configs import CONFIG_DIR
-from torchrl_wbrm.data import EnvConfig
-from torchrl_wbrm.data.tasks import TASKS, get_task
+from torchrl_wbrm.tasks import EnvConfig
+from torchrl_wbrm.tasks import TASKS, get_task
 from torchrl_wbrm.training.config import BaselinesConfig, WBRMConfig, register_configs, validate_config
 from torchrl_wbrm.training.plots import LOSS_TITLES
 
@@ -166,7 +166,7 @@ def test_nothing_but_the_tasks_branches_on_the_env_kind():
     proc = subprocess.run(["grep", "-rnE", r"is_lqr|\.kind ?[!=]=|== \"(mountain_car|minari|lqr)\"", "--include=*.py",
                            str(PACKAGE)], capture_output=True, text=True)
     # data/minari_examples.py's command line picks which example datasets to write (not an env of a run)
-    hits = [line for line in proc.stdout.splitlines() if "/data/tasks/" not in line and "minari_examples.py" not in line]
+    hits = [line for line in proc.stdout.splitlines() if "/torchrl_wbrm/tasks/" not in line and "minari_examples.py" not in line]
     assert hits == [] and set(TASKS) == {"lqr", "mountain_car", "minari"}
 
 
@@ -182,11 +182,24 @@ def _runtime_imports(tree: ast.AST):
         yield from _runtime_imports(node)
 
 
-def test_the_lower_layers_never_import_the_training_or_the_recipes():
-    for layer in ("envs", "policies", "data", "modules", "objectives", "evaluation", "ratio", "ope", "algos"):
-        for path in (PACKAGE / layer).rglob("*.py"):
+#: the package's floors, lowest first: a floor imports only from its own and the floors below it
+FLOORS = (("_console", "_devices", "keys"), ("envs",), ("policies", "modules", "evaluation"), ("data",), ("tasks",),
+          ("objectives",), ("ratio",), ("ope",), ("algos",), ("training",), ("cli",), ("__main__",))
+
+
+def test_every_floor_imports_only_from_the_floors_below_it():
+    level = {name: i for i, floor in enumerate(FLOORS) for name in floor}
+    top = {p.stem if p.is_file() else p.name for p in PACKAGE.iterdir()
+           if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.stem != "__init__")}
+    assert top == set(level), f"a floor of the package is not listed in FLOORS: {sorted(top ^ set(level))}"
+    for name, floor in level.items():
+        root = PACKAGE / name
+        for path in (root.rglob("*.py") if root.is_dir() else [root.with_suffix(".py")]):
             for module in _runtime_imports(ast.parse(path.read_text())):
-                assert not module.startswith(("torchrl_wbrm.training", "recipes")), (path, module)
+                assert not module.startswith("recipes"), (path, module)
+                parts = module.split(".")
+                if parts[0] == "torchrl_wbrm" and len(parts) > 1 and parts[1] in level:
+                    assert level[parts[1]] <= floor, f"{path.relative_to(PACKAGE)} imports {module}, a higher floor"
 
 
 # ---------------------------------------------------------------------- recipes: wiring only

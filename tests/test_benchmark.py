@@ -150,7 +150,7 @@ def test_a_run_draws_its_few_expert_episodes_by_its_seed(pendulum):
     """env.minari.expert_episodes=2: S^e is two of the pool's six episodes, the same two for one seed, others for
     other seeds; more than the pool holds is refused in one line naming the key and the count."""
     from torchrl_wbrm.data.minari_data import MinariDataConfig, check_minari_data, make_minari_datasets
-    from torchrl_wbrm.data.tasks import MinariTask
+    from torchrl_wbrm.tasks import MinariTask
 
     path, row = pendulum
     config = MinariDataConfig(expert=row["expert_pool"], behaviour=row["behaviour_expert10"], data_path=str(path),
@@ -176,7 +176,7 @@ def test_a_run_draws_its_few_expert_episodes_by_its_seed(pendulum):
         check_minari_data(config)
     with pytest.raises(ValueError, match=r"env.minari.expert_episodes=7 .* holds 6"):
         make_minari_datasets(config, seed=0)
-    from torchrl_wbrm.data import EnvConfig
+    from torchrl_wbrm.tasks import EnvConfig
 
     config.expert_episodes = 0
     with pytest.raises(ValueError, match="env.minari.expert_episodes must be >= 1"):
@@ -189,7 +189,7 @@ def test_a_run_reports_the_normalised_score_and_flags_a_policy_below_its_data(pe
     and, its policy being no better than random torques, the below_behaviour flag with its figures; given an earlier
     evaluation at the expert's return, the return_fell flag too."""
     from torchrl_wbrm.training import WBRMConfig, WBRMTrainer
-    from torchrl_wbrm.data import EnvConfig
+    from torchrl_wbrm.tasks import EnvConfig
     from torchrl_wbrm.data.minari_data import MinariDataConfig
 
     path, row = pendulum

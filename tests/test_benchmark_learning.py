@@ -52,7 +52,7 @@ def _available(task) -> bool:
 
 
 def _run(path, row, tmp_path, steps, seed=0):
-    from torchrl_wbrm.data import EnvConfig
+    from torchrl_wbrm.tasks import EnvConfig
     from torchrl_wbrm.data.minari_data import MinariDataConfig
     from torchrl_wbrm.training import WBRMConfig, WBRMTrainer
 

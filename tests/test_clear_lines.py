@@ -118,7 +118,7 @@ def test_an_episode_whose_reward_sum_overflows_is_refused(minari_data):
 
 def test_a_saved_dataset_with_a_1e30_reward_is_refused(tmp_path):
     from torchrl_wbrm.data.datasets import OfflineDatasets, read_saved_dataset
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
 
     datasets = get_task(tiny().env).make_datasets(seed=0)
     d = datasets.transitions[:].clone()
@@ -245,7 +245,7 @@ def test_a_failed_write_names_the_file_and_the_disk_and_leaves_no_partial_file(t
 def test_a_dataset_larger_than_the_free_space_is_refused_before_writing(tmp_path, monkeypatch):
     import shutil as shutil_module
 
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
 
     datasets = get_task(tiny().env).make_datasets(seed=0)
     usage = shutil_module.disk_usage(tmp_path)

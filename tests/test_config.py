@@ -75,7 +75,7 @@ def test_every_env_group_is_covered():
 def test_an_env_named_by_string_is_the_recipes_env(env):
     """``WBRMConfig(env="<name>")`` equals ``python recipes/wbrm_offline.py env=<name>`` for every key, before and
     after the env's task fills what the config leaves null (γ, the support term, the budget, ...)."""
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
     from torchrl_wbrm.training.config import to_config
 
     required = _required(env)
@@ -88,9 +88,8 @@ def test_an_env_named_by_string_is_the_recipes_env(env):
     recipe = to_config(composed)
     assert _as_flat(to_config(api)) == _as_flat(recipe)
     task = get_task(recipe.env)
-    for key, value in task.training_defaults().items():  # every env-derived setting came from the task
-        section, name = key.split(".")
-        assert getattr(getattr(recipe, section), name) == value, key
+    for section, name, value in task.training_defaults().items():  # every env-derived setting came from the task
+        assert getattr(getattr(recipe, section), name) == value, (section, name)
 
 
 def test_an_unknown_env_name_is_refused_naming_the_choices():

@@ -207,7 +207,7 @@ def test_mountain_car_parallel_envs_must_be_positive():
 
 
 def test_cached_datasets_are_reused_and_keyed_by_config(tmp_path):
-    from torchrl_wbrm.data import EnvConfig, cached_offline_datasets
+    from torchrl_wbrm.tasks import EnvConfig, cached_offline_datasets
 
     env = EnvConfig(lqr_data=SMALL)
     a = cached_offline_datasets(env, seed=0, cache_dir=tmp_path)
@@ -226,8 +226,8 @@ def test_a_shifted_behaviour_start_moves_the_behaviour_data_only():
     value that is not a positive number is refused by name."""
     from omegaconf import OmegaConf
 
-    from torchrl_wbrm.data.factory import EnvConfig
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import EnvConfig
+    from torchrl_wbrm.tasks import get_task
 
     data = LQRDataConfig(behaviour_episodes=400, expert_episodes=200, parallel_envs=200, behaviour_initial_std=3.0)
     shifted, plain = make_lqr_datasets("exp1", data, seed=0), make_lqr_datasets("exp1", SMALL, seed=0)

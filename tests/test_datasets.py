@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchrl_wbrm.data import EnvConfig, LQRDataConfig, OfflineDatasets, cached_offline_datasets, make_lqr_datasets
+from torchrl_wbrm.data import LQRDataConfig, OfflineDatasets, make_lqr_datasets
+from torchrl_wbrm.tasks import EnvConfig, cached_offline_datasets
 
 SMALL = LQRDataConfig(behaviour_episodes=40, expert_episodes=20, parallel_envs=20)
 

@@ -134,13 +134,13 @@ def test_the_readme_says_how_its_sample_output_and_its_headline_differ():
     """The sample output is one seed at the recipe's defaults, the headline the mean over seeds at the tables'
     budget: the README says so with the budgets that the recipe and configs/study_budgets.yaml hold, and its
     headline's WBRM row is the paper-tables fragment's."""
-    from torchrl_wbrm.data.tasks import LQRTask
+    from torchrl_wbrm.tasks import LQRTask
     from torchrl_wbrm.training.runs import study_budget
     from tests.references import compose_recipe
 
     readme = (ROOT / "README.md").read_text()
     width = compose_recipe().q.num_cells
-    steps = LQRTask.TRAINING_DEFAULTS["q.steps"]
+    steps = LQRTask.TRAINING_DEFAULTS.q.steps
     defaults = f"one run, seed 0, at the recipe's defaults ({len(width)}×{width[0]} networks, {steps:,} steps)"
     assert defaults in readme.lower().replace("\n", " "), defaults
     table = dict(override.split("=", 1) for override in study_budget("table"))

@@ -66,7 +66,7 @@ def data(tmp_path_factory):
 
 
 def _config(data, **overrides):
-    from torchrl_wbrm.data import EnvConfig
+    from torchrl_wbrm.tasks import EnvConfig
     from torchrl_wbrm.data.minari_data import MinariDataConfig
     from torchrl_wbrm.training import WBRMConfig
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 from torchrl.data import LazyMemmapStorage
 
-from torchrl_wbrm.data import make_offline_datasets
+from torchrl_wbrm.tasks import make_offline_datasets
 from torchrl_wbrm.data.lqr import LQRDataConfig
 from torchrl_wbrm.training import WBRMTrainer
 

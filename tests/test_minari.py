@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from minari_helpers import mountain_car_datasets
-from torchrl_wbrm.data import EnvConfig, make_offline_datasets
+from torchrl_wbrm.tasks import EnvConfig, make_offline_datasets
 from torchrl_wbrm.data.minari_data import (
     MinariDataConfig,
     make_minari_datasets,
@@ -286,7 +286,7 @@ def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, alg
     for an algo that fits a Bellman residual, the LayerNorm and the shared selection for DDPG, and the shared
     LayerNorm and selection for the others; a Discrete action keeps the shared defaults. The command line wins over
     either."""
-    from torchrl_wbrm.data.tasks import MinariTask, Task
+    from torchrl_wbrm.tasks import MinariTask, Task
     from torchrl_wbrm.training import WBRMConfig
     from torchrl_wbrm.training.config import to_config
 
@@ -300,13 +300,13 @@ def test_minari_defaults_follow_the_action_space_and_the_algo(cartpole_grid, alg
         return out.layer_norm, out.steps, out.eval_every, out.select
 
     residual = algo in ("wbrm", "brm")
-    shared = Task.TRAINING_DEFAULTS
-    continuous = MinariTask.TRAINING_DEFAULTS
-    assert continuous["q.steps"] == 9000 and continuous["q.select"] == "held_out_weighted_residual"
+    shared = Task.TRAINING_DEFAULTS.q
+    continuous = MinariTask.TRAINING_DEFAULTS.q
+    assert continuous.steps == 9000 and continuous.select == "held_out_weighted_residual"
     pick = (continuous if residual else shared)
-    layer_norm = (continuous if residual or algo == "ddpg" else shared)["q.layer_norm"]
+    layer_norm = (continuous if residual or algo == "ddpg" else shared).layer_norm
     assert layer_norm is (residual or algo == "ddpg")
-    assert resolved(_config()) == (layer_norm, 9000, 1500, pick["q.select"])
+    assert resolved(_config()) == (layer_norm, 9000, 1500, pick.select)
     assert resolved(_cartpole_config(cartpole_grid)) == (False, 3000, 500, "last")
     assert resolved(_config(), layer_norm=False, steps=7, select="last") == (False, 7, 1500, "last")
 
@@ -393,7 +393,7 @@ def test_the_vector_env_gives_the_one_by_one_figures(tmp_path, env_id, action_sh
     from tensordict.nn import TensorDictModule
 
     from torchrl_wbrm.data.minari_examples import register_reshaped_env
-    from torchrl_wbrm.data.tasks import MinariEvaluator
+    from torchrl_wbrm.tasks import MinariEvaluator
     from torchrl_wbrm.evaluation import evaluate_returns
     from torchrl_wbrm.evaluation.metrics import discounted_returns
 

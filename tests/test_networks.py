@@ -208,27 +208,27 @@ def _compose(*overrides):
 
 
 def test_env_defaults_apply_to_their_env_only_and_the_command_line_wins():
-    """The env's settings come from its task object (Task.TRAINING_DEFAULTS), not from YAML: the recipe's composed
+    """The env's settings come from its task object (its typed Task.TRAINING_DEFAULTS), not from YAML: the recipe's composed
     config leaves them null and resolve_defaults fills them, so the Python API gets the same values."""
-    from torchrl_wbrm.data.tasks import LQRTask, MinariTask, MountainCarTask
+    from torchrl_wbrm.tasks import LQRTask, MinariTask, MountainCarTask
     from torchrl_wbrm.training import WBRMConfig, resolve_defaults
     from torchrl_wbrm.training.config import to_config
 
     mc = _compose("env=mountain_car")
     assert mc.q.bc_alpha is None and mc.q.steps is None and mc.q.gamma is None  # nothing env-specific in YAML
     resolved = to_config(mc)
-    for key, value in MountainCarTask.TRAINING_DEFAULTS.items():
-        section, name = key.split(".")
-        assert getattr(getattr(resolved, section), name) == value, key
+    for section, name, value in MountainCarTask.TRAINING_DEFAULTS.items():
+        if value is not None:  # gamma: the task's default_gamma
+            assert getattr(getattr(resolved, section), name) == value, (section, name)
     assert resolved.q.gamma == MountainCarTask.default_gamma == 0.9999
     assert resolved.q.bc_alpha == 10.0 and resolved.q.expert_bc_alpha == 0 and resolved.q.normalise_observations
     # the Python API, from the schema alone, resolves to the same config as the recipe
     api = resolve_defaults(WBRMConfig(env=to_config(mc).env, threads=1))  # threads: the recipe's one difference
     assert api == resolved
     lqr = to_config(_compose("env=lqr_exp1"))
-    assert lqr.q.expert_bc_alpha == LQRTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0
+    assert lqr.q.expert_bc_alpha == LQRTask.TRAINING_DEFAULTS.q.expert_bc_alpha == 1.0
     assert not lqr.q.normalise_observations and lqr.q.gamma == 0.9 and lqr.eval.episodes == 1000
-    assert MinariTask.TRAINING_DEFAULTS["q.expert_bc_alpha"] == 1.0  # the shared default, not MountainCar's
+    assert MinariTask.TRAINING_DEFAULTS.q.expert_bc_alpha == 1.0  # the shared default, not MountainCar's
     assert to_config(_compose("env=mountain_car", "q.bc_alpha=1.0")).q.bc_alpha == 1.0  # the command line wins
     assert to_config(_compose("env=mountain_car", "q.steps=7")).q.steps == 7
     # one support term: choosing one leaves the other off; both on is refused by name

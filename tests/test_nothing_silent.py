@@ -42,7 +42,7 @@ def _save_with_rewards_scaled(datasets, path, row: int, factor: float) -> None:
 def test_a_resume_after_the_datas_rewards_changed_is_refused(tmp_path):
     """A saved dataset whose reward at row 300 (past the rows the old fingerprint summed) is doubled after the run
     stopped: the resume is refused in one line naming the checkpoint, before anything is written."""
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
 
     cfg = tiny(env={"lqr_data": {"dataset_dir": str(tmp_path / "ds")}})
     datasets = get_task(tiny().env).make_datasets(seed=0)
@@ -63,7 +63,7 @@ def test_a_resume_after_the_datas_rewards_changed_is_refused(tmp_path):
 
 def test_the_fingerprint_covers_every_tensor_of_every_set():
     from torchrl_wbrm.data.datasets import OfflineDatasets
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
 
     datasets = get_task(tiny().env).make_datasets(seed=0)
     base = data_fingerprint(datasets)
@@ -171,7 +171,7 @@ def test_the_recipe_refuses_a_resume_on_changed_data_in_one_line(tmp_path):
 
     from tests import inprocess
     from tests.test_clear_lines import TINY
-    from torchrl_wbrm.data.tasks import get_task
+    from torchrl_wbrm.tasks import get_task
 
     datasets = get_task(tiny().env).make_datasets(seed=0)
     _save_with_rewards_scaled(datasets, tmp_path / "ds", row=300, factor=1.0)

@@ -390,7 +390,7 @@ def test_one_recipe_run_prepares_its_config_once(tmp_path, monkeypatch):
     from collections import Counter
 
     from torchrl_wbrm import cli
-    from torchrl_wbrm.data.tasks.base import Task
+    from torchrl_wbrm.tasks.base import Task
     from torchrl_wbrm.training import config as config_module
 
     counts = Counter()

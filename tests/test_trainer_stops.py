@@ -14,9 +14,10 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets
+from torchrl_wbrm.data import OfflineDatasets
+from torchrl_wbrm.tasks import cached_offline_datasets
 from torchrl_wbrm.data.datasets import min_behaviour_episodes
-from torchrl_wbrm.data.factory import EnvConfig
+from torchrl_wbrm.tasks import EnvConfig
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig, validate_config

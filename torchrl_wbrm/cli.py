@@ -20,7 +20,7 @@ from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_wbrm.configs import CONFIG_DIR
-from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs
 from torchrl_wbrm.training.results import write_json
 from torchrl_wbrm.training.resume import read_run_record

@@ -52,7 +52,7 @@ QValueFn = Callable[[TensorDictBase], "tuple[torch.Tensor, torch.Tensor]"]
 class AlgoContext:
     """What a builder needs from the trainer: the config, the problem's sizes, the Q output bias, (with
     ``q.normalise_observations``) the data's observation mean and standard deviation for the networks' input, and
-    the environment's :class:`~torchrl_wbrm.data.tasks.Task` (what a builder may ask of the env, e.g. DQN's action
+    the environment's :class:`~torchrl_wbrm.tasks.Task` (what a builder may ask of the env, e.g. DQN's action
     grid, without knowing which env it is)."""
 
     cfg: WBRMConfig

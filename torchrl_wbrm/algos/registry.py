@@ -32,7 +32,7 @@ class AlgoSpec:
             ``baselines.bc.data=weighted``); :meth:`fits_ratio_for` reads either.
         bellman_residual: it fits a Bellman residual (its algo's ``bellman_loss``), so ``q.select`` can score its
             evaluations on the held-out D episodes; the task's defaults of
-            :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` (Q's LayerNorm, ``q.select``) apply to
+            :attr:`~torchrl_wbrm.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` (Q's LayerNorm, ``q.select``) apply to
             it, and the shared ones to the others (:func:`~torchrl_wbrm.training.config.resolve_defaults`).
         critic_layer_norm: the task's default of Q's LayerNorm (``q.layer_norm``) applies to it although it fits no
             Bellman residual (``q.select`` stays the shared one): an algo whose reference has nothing that keeps its

@@ -1,4 +1,5 @@
-"""Offline datasets: collection with torchrl's Collector, the D / S^b / S^e split, replay buffers, save/load."""
+"""Offline datasets, read and written: collection with torchrl's Collector, the D / S^b / S^e split, replay
+buffers, save/load."""
 from torchrl_wbrm.data.datasets import (
     OfflineDatasets,
     collect_transitions,
@@ -7,17 +8,12 @@ from torchrl_wbrm.data.datasets import (
     split_by_episode,
 )
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
-from torchrl_wbrm.data.factory import ENV_KINDS, EnvConfig, cached_offline_datasets, make_offline_datasets
 from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
 from torchrl_wbrm.data.minari_data import MinariDataConfig, make_minari_datasets, write_minari_dataset
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig, make_mountain_car_datasets
 from torchrl_wbrm.data.torchrl_minari import minari_replay_buffer
 
 __all__ = [
-    "ENV_KINDS",
-    "EnvConfig",
-    "make_offline_datasets",
-    "cached_offline_datasets",
     "OfflineDatasets",
     "BufferBatches",
     "PairedSampler",

@@ -6,6 +6,7 @@ again by :func:`validate_config` (allowed names, ranges), which names the settin
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field, make_dataclass
@@ -15,8 +16,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_wbrm.algos import ALGOS, store_algo_configs
-from torchrl_wbrm.data import EnvConfig
-from torchrl_wbrm.data.tasks import Task, get_task
+from torchrl_wbrm.tasks import EnvConfig, Task, get_task
 from torchrl_wbrm.training.validation import validate_run_settings
 
 __all__ = [
@@ -102,9 +102,9 @@ class RatioConfig:
 class QConfig:
     """Stage 2: Q (and the actor) by the weighted Bellman residual (Section 3).
 
-    Settings shown as "null: the env's" take the value of the env's task
-    (:attr:`~torchrl_wbrm.data.tasks.Task.TRAINING_DEFAULTS`, applied by :func:`resolve_defaults`) unless set; the
-    recipe and the Python API resolve them the same way.
+    Settings shown as "null: the env's" take the value of the env's task unless set (its typed
+    :attr:`~torchrl_wbrm.tasks.Task.TRAINING_DEFAULTS`, a :class:`~torchrl_wbrm.tasks.TrainingDefaults`, applied by
+    :func:`resolve_defaults`); the recipe and the Python API resolve them the same way.
 
     Attributes:
         residual: ``"squared"`` (mean ŵ δ²) or ``"absolute_mean"`` (the paper's |mean ŵ δ|).
@@ -294,7 +294,7 @@ class WBRMConfig:
     """``recipes/wbrm_offline.py``: the two-stage offline recipe.
 
     Attributes:
-        env: the environment and its data (group ``env``): an :class:`~torchrl_wbrm.data.EnvConfig`, or the name of an
+        env: the environment and its data (group ``env``): an :class:`~torchrl_wbrm.tasks.EnvConfig`, or the name of an
             env config as on the recipe's command line (``"lqr_exp1"``, ``"mountain_car"``, ``"minari"``: :func:`env_config`).
         algo: a name of :data:`torchrl_wbrm.algos.ALGOS` (group ``algo``, one file per algorithm under
             ``torchrl_wbrm/algos/``): ``"wbrm"`` (the two stages), ``"brm"`` (stage 2 alone with w ≡ 1: the
@@ -346,7 +346,7 @@ class WBRMConfig:
 
 
 def env_config(name: str) -> EnvConfig:
-    """The :class:`~torchrl_wbrm.data.EnvConfig` that ``env=<name>`` selects in the recipe: ``configs/env/<name>.yaml``
+    """The :class:`~torchrl_wbrm.tasks.EnvConfig` that ``env=<name>`` selects in the recipe: ``configs/env/<name>.yaml``
     merged on the schema. ``WBRMConfig(env="lqr_exp1")`` calls it. The Minari datasets of ``env="minari"`` are
     mandatory in the recipe (``env.minari.expert=... env.minari.behaviour=...``); here they are left empty, to be set
     on the returned config (an empty one is refused when the run starts).
@@ -429,10 +429,10 @@ def _choices() -> dict[str, tuple]:
 
 def resolve_defaults(cfg, task: Task | None = None):
     """``cfg`` with every setting it leaves null (``None``) set from the env's task
-    (:meth:`~torchrl_wbrm.data.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
+    (:meth:`~torchrl_wbrm.tasks.Task.training_defaults`): γ, the support term, the input normalisation, Q's
     activation and LayerNorm, the step budget, the parameters delivered (``q.select``) and the evaluation sizes; for an
     algo without a Bellman residual (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`) the shared defaults of
-    :attr:`~torchrl_wbrm.data.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` instead of the task's, but the task's LayerNorm
+    :attr:`~torchrl_wbrm.tasks.Task.BELLMAN_RESIDUAL_SETTINGS` instead of the task's, but the task's LayerNorm
     for one with :attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm`. A copy; settings already given are kept as
     they are.
 
@@ -454,11 +454,11 @@ def resolve_defaults(cfg, task: Task | None = None):
     defaults = (task if task is not None else get_task(cfg.env)).training_defaults()
     spec = ALGOS.get(cfg.algo)
     if spec is not None and not spec.bellman_residual:  # the shared defaults, as the algo's reference defines it
-        kept = {"q.layer_norm"} if spec.critic_layer_norm else set()
-        defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in Task.BELLMAN_RESIDUAL_SETTINGS
-                         if key not in kept})
-    for key, value in defaults.items():
-        section, name = key.split(".")
+        kept = {"layer_norm"} if spec.critic_layer_norm else set()
+        shared = {key: getattr(Task.TRAINING_DEFAULTS.q, key) for key in Task.BELLMAN_RESIDUAL_SETTINGS
+                  if key not in kept}
+        defaults = dataclasses.replace(defaults, q=dataclasses.replace(defaults.q, **shared))
+    for section, name, value in defaults.items():
         node = getattr(cfg, section)
         if getattr(node, name) is None:
             setattr(node, name, value)

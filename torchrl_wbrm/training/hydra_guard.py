@@ -37,7 +37,7 @@ class RunDirGuard(Callback):
 
     * the config is merged, resolved and validated, and its env's task built, once
       (:func:`~torchrl_wbrm.training.config.prepare_config`); the run takes both (:func:`take_prepared`);
-    * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.data.tasks.Task.check_data`: a Minari
+    * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.tasks.Task.check_data`: a Minari
       pair, or a saved dataset), and held for the run's trainer, which does not read them again;
     * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
       a checkpoint whose config this one may continue, and ``X`` is claimed;

@@ -11,7 +11,7 @@ Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_w
 builds each method's loss, optimisers, step function and evaluated policy; stage 1 runs only for an algo registered
 with ``fits_ratio`` (``wbrm``; ``bc`` with ``baselines.bc.data=weighted``) and a learned ratio. Everything
 env-specific (the data, the action box, γ, the evaluator and the ground truth) is the env's
-:class:`~torchrl_wbrm.data.tasks.Task`: the trainer never asks which env it runs.
+:class:`~torchrl_wbrm.tasks.Task`: the trainer never asks which env it runs.
 
 Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
 evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
@@ -33,10 +33,10 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_wbrm.data import OfflineDatasets, cached_offline_datasets, make_replay_buffer
+from torchrl_wbrm.data import OfflineDatasets, make_replay_buffer
 from torchrl_wbrm.data.datasets import check_episodes_in_order, split_by_episode
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
-from torchrl_wbrm.data.tasks import Evaluator, Task, get_task
+from torchrl_wbrm.tasks import Evaluator, Task, cached_offline_datasets, get_task
 from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork

@@ -10,7 +10,7 @@ from dataclasses import fields, is_dataclass
 
 import torch
 
-from torchrl_wbrm.data.tasks import get_task
+from torchrl_wbrm.tasks import get_task
 
 __all__ = ["SEED_LIMIT", "check_device", "check_logger", "check_seeds", "check_writable_folder",
            "validate_run_settings"]

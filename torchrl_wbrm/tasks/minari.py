@@ -1,6 +1,8 @@
 """Two local Minari datasets (expert and behaviour), evaluated on their own gymnasium env."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from torchrl.data import Bounded
 
@@ -13,7 +15,7 @@ from torchrl_wbrm.data.minari_data import (
     make_minari_eval_env,
     minari_discrete_action,
 )
-from torchrl_wbrm.data.tasks.base import Evaluator, Task, to_dataclass
+from torchrl_wbrm.tasks.base import Evaluator, QDefaults, Task, TrainingDefaults, to_dataclass
 from torchrl_wbrm.evaluation import evaluate_returns
 from torchrl_wbrm.modules import ActionGrid
 
@@ -30,35 +32,29 @@ class MinariTask(Task):
     #: for a continuous (``Box``) action, the shared defaults but: a LayerNorm in every critic, three times the budget
     #: (9,000 steps, evaluated every 1,500) and the evaluation with the lowest ŵ-weighted Bellman residual on the
     #: held-out D episodes delivered (``q.select``; the LayerNorm and the selection apply to an algo that fits a Bellman
-    #: residual, :attr:`~Task.BELLMAN_RESIDUAL_SETTINGS`, and the LayerNorm to DDPG's critic). On the benchmark's four
-    #: tasks (``torchrl_wbrm.data.benchmark``), with 3 demonstrations and one behaviour episode in ten the expert's, the
-    #: shared defaults score 82, 86, 83 and 100 normalised (Pendulum, MountainCar, LunarLander, InvertedPendulum; 5
-    #: seeds) and these 101, 97, 93 and 100 (5–20 seeds); with 1 demonstration 102 and 78 (Pendulum, LunarLander)
-    #: against 51 and 71; with 100 the same or higher on every task. The LayerNorm holds Q's held-out residual as the
-    #: budget grows where Q without it diverges (InvertedPendulum, LunarLander); the budget lets Pendulum's swing-up and
-    #: MountainCar's goal reach Q; the selection keeps LunarLander's early parameters when Q drifts later in the run,
-    #: and costs a seed where the residual is lowest before Q has learned (Pendulum one of twenty, MountainCar one of
-    #: five; such a run is flagged ``return_fell``).
-    TRAINING_DEFAULTS = {**Task.TRAINING_DEFAULTS, "q.layer_norm": True, "q.steps": 9000, "q.eval_every": 1500,
-                         "q.select": "held_out_weighted_residual"}
-    #: the settings a ``Discrete`` action keeps at the shared defaults (no LayerNorm, 3,000 steps, the last step):
-    #: on the CartPole-v1 example datasets (3 seeds) the continuous-action defaults scored 301, 161 and 77 against
-    #: 500, 200 and 62, and the LayerNorm alone 56, 175 and 138.
-    CONTINUOUS_ONLY = ("q.layer_norm", "q.steps", "q.eval_every", "q.select")
+    #: residual, :attr:`~Task.BELLMAN_RESIDUAL_SETTINGS`, and the LayerNorm to DDPG's critic). The LayerNorm holds Q's
+    #: held-out residual as the budget grows; the selection keeps early parameters when Q drifts later in the run, and a
+    #: run whose delivered return fell is flagged ``return_fell`` (the figures: :doc:`/results/benchmark`,
+    #: :doc:`/results/selection`).
+    TRAINING_DEFAULTS = TrainingDefaults(q=QDefaults(layer_norm=True, steps=9000, eval_every=1500,
+                                                     select="held_out_weighted_residual"))
+    #: the ``q`` settings a ``Discrete`` action keeps at the shared defaults (no LayerNorm, 3,000 steps, the last step)
+    CONTINUOUS_ONLY = ("layer_norm", "steps", "eval_every", "select")
 
     def __init__(self, env) -> None:
         super().__init__(env)
         self.data_config: MinariDataConfig = to_dataclass(MinariDataConfig, env.minari)
         self._discrete: bool | None = None  # the datasets' action is a Discrete (training_defaults)
 
-    def training_defaults(self) -> dict:
+    def training_defaults(self) -> TrainingDefaults:
         """:attr:`TRAINING_DEFAULTS`, with the shared defaults for :attr:`CONTINUOUS_ONLY` when the datasets' action
         is a ``Discrete`` (read from the expert dataset's metadata)."""
         defaults = super().training_defaults()
         if self._discrete is None:  # read once per task
             self._discrete = minari_discrete_action(self.data_config)
         if self._discrete:
-            defaults.update({key: Task.TRAINING_DEFAULTS[key] for key in self.CONTINUOUS_ONLY})
+            shared = Task.TRAINING_DEFAULTS.q
+            defaults = replace(defaults, q=replace(defaults.q, **{key: getattr(shared, key) for key in self.CONTINUOUS_ONLY}))
         return defaults
 
     def validate(self) -> None:

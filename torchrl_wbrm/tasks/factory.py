@@ -14,12 +14,13 @@ from torchrl_wbrm.data.datasets import OfflineDatasets
 from torchrl_wbrm.data.lqr import LQRDataConfig
 from torchrl_wbrm.data.minari_data import MinariDataConfig
 from torchrl_wbrm.data.mountain_car import MountainCarDataConfig
-from torchrl_wbrm.data.tasks import TASKS, get_task, to_dataclass
+from torchrl_wbrm.tasks.base import to_dataclass
+from torchrl_wbrm.tasks.registry import TASKS, get_task
 from torchrl_wbrm.envs import LQRConfig
 
 __all__ = ["EnvConfig", "ENV_KINDS", "make_offline_datasets", "cached_offline_datasets"]
 
-#: the env kinds, one per registered task (:data:`torchrl_wbrm.data.tasks.TASKS`)
+#: the env kinds, one per registered task (:data:`torchrl_wbrm.tasks.TASKS`)
 ENV_KINDS = tuple(TASKS)
 
 
@@ -29,7 +30,7 @@ class EnvConfig:
 
     Attributes:
         name: a label for logs and tables (``lqr_exp1``, ``mountain_car``, ...).
-        kind: the task (:data:`~torchrl_wbrm.data.tasks.TASKS`): ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two
+        kind: the task (:data:`~torchrl_wbrm.tasks.TASKS`): ``"lqr"``, ``"mountain_car"`` or ``"minari"`` (two
             local Minari datasets, ``minari``).
         lqr: the LQR system (any F, G, R; the paper's three are ``configs/env/lqr_exp{1,2,3}.yaml``).
         lqr_data: LQR dataset sizes and policies.
@@ -51,7 +52,7 @@ class EnvConfig:
 
 def make_offline_datasets(env: EnvConfig, *, seed: int, storage: str = "lazy", scratch_dir=None) -> OfflineDatasets:
     """Collect (or read) the three sets (``D``, ``S^b``, ``S^e``) for ``env`` with ``seed``: its task's
-    :meth:`~torchrl_wbrm.data.tasks.Task.make_datasets`."""
+    :meth:`~torchrl_wbrm.tasks.Task.make_datasets`."""
     return get_task(to_dataclass(EnvConfig, env)).make_datasets(seed=seed, storage=storage, scratch_dir=scratch_dir)
 
 

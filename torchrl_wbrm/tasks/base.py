@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, ClassVar
 
 import torch
@@ -11,7 +12,53 @@ from torchrl_wbrm.data.datasets import OfflineDatasets
 
 from torchrl_wbrm.modules import ActionGrid
 
-__all__ = ["Evaluator", "Task", "to_dataclass"]
+__all__ = ["EvalDefaults", "Evaluator", "QDefaults", "Task", "TrainingDefaults", "to_dataclass"]
+
+
+@dataclass(frozen=True)
+class QDefaults:
+    """A task's values of the ``q`` settings a config leaves null (:class:`~torchrl_wbrm.training.config.QConfig`).
+
+    The shared values: the actor clones S^e's actions beside maximising Q (``expert_bc_alpha`` 1, λ = α / mean|Q| as
+    in TD3+BC, :class:`~torchrl_wbrm.algos.base.ExpertCloning`: a term that keeps μ on the data's support); networks
+    see ``(x − mean) / std`` of D's observations (gymnasium observations differ in scale by orders of magnitude);
+    GELU, no LayerNorm, 3,000 steps evaluated every 500, the last step's parameters delivered. ``gamma`` ``None``:
+    the task's :attr:`Task.default_gamma`.
+    """
+
+    expert_bc_alpha: float = 1.0
+    bc_alpha: float = 0.0
+    normalise_observations: bool = True
+    activation: str = "GELU"
+    layer_norm: bool = False
+    steps: int = 3000
+    eval_every: int = 500
+    select: str = "last"
+    gamma: float | None = None
+
+
+@dataclass(frozen=True)
+class EvalDefaults:
+    """A task's values of the ``eval`` settings a config leaves null
+    (:class:`~torchrl_wbrm.training.config.EvalConfig`): 100 final episodes, 10 per periodic evaluation."""
+
+    episodes: int = 100
+    train_episodes: int = 10
+
+
+@dataclass(frozen=True)
+class TrainingDefaults:
+    """A task's training defaults: the values its config's null settings take, one typed field per setting."""
+
+    q: QDefaults = field(default_factory=QDefaults)
+    eval: EvalDefaults = field(default_factory=EvalDefaults)
+
+    def items(self):
+        """``(section, name, value)`` for every setting, e.g. ``("q", "steps", 3000)``."""
+        for section in fields(self):
+            node = getattr(self, section.name)
+            for f in fields(node):
+                yield section.name, f.name, getattr(node, f.name)
 
 
 def to_dataclass(cls, value):
@@ -54,7 +101,7 @@ class Evaluator(ABC):
 class Task(ABC):
     """One environment kind (``env.kind``): its data, its action box, γ, its evaluator and its ground truth.
 
-    A task is made from the env config (:func:`~torchrl_wbrm.data.tasks.get_task`) before any data exist (to check
+    A task is made from the env config (:func:`~torchrl_wbrm.tasks.get_task`) before any data exist (to check
     the config and build the data); :meth:`attach` then gives it the datasets, which the action box, the action grid
     and the evaluator may read.
     """
@@ -66,48 +113,26 @@ class Task(ABC):
     collects_data: ClassVar[bool] = True
     #: γ when ``q.gamma`` is null
     default_gamma: float = 0.99
-    #: the settings a config leaves null (``None``) get these values (dotted keys of
-    #: :class:`~torchrl_wbrm.training.config.WBRMConfig`), so the recipe and the Python API run the same method on
-    #: every env: :func:`~torchrl_wbrm.training.config.resolve_defaults` applies them. The defaults hold on every
-    #: benchmark task (``torchrl_wbrm.data.benchmark``) with no per-task tuning; a subclass changes one only for a
-    #: reason it documents.
-    #:
-    #: * ``q.expert_bc_alpha`` 1.0: the actor clones S^e's actions beside maximising Q, λ = α / mean|Q| as in
-    #:   TD3+BC (``algos.base.ExpertCloning``): without a term that keeps μ on the data's support every
-    #:   Bellman-residual actor pushes off the data on standard tasks (Pendulum-v1, seed 0: −841 without, −141 with
-    #:   α 2.5). α 1, not TD3+BC's 2.5, which is set for cloning mixed-quality D: S^e is the expert's;
-    #: * ``q.normalise_observations``: networks see ``(x − mean) / std`` of D's observations (gymnasium observations
-    #:   differ in scale by orders of magnitude across dimensions);
-    #: * ``q.activation`` GELU, no LayerNorm (``q.layer_norm``), ``q.steps`` 3000, ``q.eval_every`` 500, the last
-    #:   step's parameters delivered (``q.select``);
-    #: * ``eval.episodes`` 100 and ``eval.train_episodes`` 10 (gymnasium episodes run one by one).
-    TRAINING_DEFAULTS: ClassVar[dict[str, Any]] = {
-        "q.expert_bc_alpha": 1.0,
-        "q.bc_alpha": 0.0,
-        "q.normalise_observations": True,
-        "q.activation": "GELU",
-        "q.layer_norm": False,
-        "q.steps": 3000,
-        "q.eval_every": 500,
-        "q.select": "last",
-        "eval.episodes": 100,
-        "eval.train_episodes": 10,
-    }
+    #: the values of the settings a config leaves null (``None``), applied by
+    #: :func:`~torchrl_wbrm.training.config.resolve_defaults`, so the recipe and the Python API run the same method on
+    #: every env. The shared defaults hold on every benchmark task with no per-task tuning; a subclass changes one only
+    #: for a reason it documents (the figures: :doc:`/results/benchmark`).
+    TRAINING_DEFAULTS: ClassVar[TrainingDefaults] = TrainingDefaults()
 
-    #: the settings whose task default applies to an algo that fits a Bellman residual only
+    #: the ``q`` settings whose task default applies to an algo that fits a Bellman residual only
     #: (:attr:`~torchrl_wbrm.algos.AlgoSpec.bellman_residual`: WBRM, BRM, FQI, MABO); every other algo (BC and the
-    #: baselines TD3+BC, IQL, CQL, ...) gets the shared values above, its critics as its reference defines them,
-    #: but the task's LayerNorm goes to an algo with :attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm` (DDPG).
+    #: baselines TD3+BC, IQL, CQL, ...) gets the shared values, its critics as its reference defines them, but the
+    #: task's LayerNorm goes to an algo with :attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm` (DDPG).
     #: ``q.select`` scores evaluations by the held-out Bellman residual, which only those algos fit.
-    BELLMAN_RESIDUAL_SETTINGS: ClassVar[tuple[str, ...]] = ("q.layer_norm", "q.select")
+    BELLMAN_RESIDUAL_SETTINGS: ClassVar[tuple[str, ...]] = ("layer_norm", "select")
 
-    def training_defaults(self) -> dict[str, Any]:
+    def training_defaults(self) -> TrainingDefaults:
         """:attr:`TRAINING_DEFAULTS` with ``q.gamma`` (:attr:`default_gamma`): the values of the settings a config
         leaves null."""
-        return {**self.TRAINING_DEFAULTS, "q.gamma": self.default_gamma}
+        return replace(self.TRAINING_DEFAULTS, q=replace(self.TRAINING_DEFAULTS.q, gamma=self.default_gamma))
 
     def __init__(self, env) -> None:
-        """``env``: the env config (:class:`~torchrl_wbrm.data.EnvConfig`, or an OmegaConf node of one)."""
+        """``env``: the env config (:class:`~torchrl_wbrm.tasks.EnvConfig`, or an OmegaConf node of one)."""
         self.env = env
         self.datasets: OfflineDatasets | None = None
 

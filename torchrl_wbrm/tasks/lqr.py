@@ -8,7 +8,7 @@ from torchrl.data import Bounded
 from torchrl_wbrm.data import lqr as lqr_data
 from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions, min_behaviour_episodes
 from torchrl_wbrm.data.lqr import LQRDataConfig
-from torchrl_wbrm.data.tasks.base import Evaluator, Task, to_dataclass
+from torchrl_wbrm.tasks.base import EvalDefaults, Evaluator, QDefaults, Task, TrainingDefaults, to_dataclass
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation import lqr_paired_regret, q_error
 from torchrl_wbrm.modules import ActionGrid
@@ -40,8 +40,8 @@ class LQRTask(Task):
     #: the shared defaults, but: the states are already standardised (x₀ ~ N(0, I)), so no input normalisation; the
     #: exact paired regret needs many parallel episodes (1000 final, 500 during training), which the batched env
     #: runs at once
-    TRAINING_DEFAULTS = {**Task.TRAINING_DEFAULTS, "q.normalise_observations": False, "eval.episodes": 1000,
-                         "eval.train_episodes": 500}
+    TRAINING_DEFAULTS = TrainingDefaults(q=QDefaults(normalise_observations=False),
+                                         eval=EvalDefaults(episodes=1000, train_episodes=500))
 
     @property
     def default_gamma(self) -> float:
