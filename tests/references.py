@@ -129,17 +129,3 @@ class Concat(nn.Module):
 
     def forward(self, *inputs):
         return self.linear(torch.cat(inputs, -1))
-
-
-def seed_group_after_stage_1(cfg, run_dir):
-    """A :class:`~torchrl_wbrm.training.seeds.SeedGroup` of ``cfg`` (its ``seeds``) whose seeds have run stage 1 and
-    built their stage-2 buffers, stage 2 not started."""
-    from torchrl_wbrm.training.seeds import SeedGroup
-
-    group = SeedGroup(cfg, run_dir, progress=False)
-    group._run_ratio()
-    for trainer in group.trainers:
-        trainer.ratio_fitter.best_network()
-        trainer.state = {"stage": "q", "step": 0}
-        trainer._build_q_buffer()
-    return group

@@ -1,6 +1,5 @@
 """``ratio.aggregate=episode``: every transition of D gets its episode's weight, the geometric mean of ŵ over the
-episode (:func:`~torchrl_wbrm.ratio.weights.episode_weights`), in a single-seed run and in the seeds-in-one-process
-path."""
+episode (:func:`~torchrl_wbrm.ratio.weights.episode_weights`), in a run."""
 from __future__ import annotations
 
 import math
@@ -104,28 +103,3 @@ def test_a_run_stores_each_episodes_weight(data, tmp_path):
     trainer = WBRMTrainer(_config(data), tmp_path / "run", progress=False)
     trainer.run()
     _check_stored(trainer)
-
-
-def test_the_seeds_in_one_process_store_each_episodes_weight(data, tmp_path):
-    from torchrl_wbrm.training.seeds import SeedGroup, not_vectorised
-
-    cfg = _config(data, seeds=[0, 1])
-    assert not_vectorised(cfg) is None
-    group = SeedGroup(cfg, tmp_path / "seeds", progress=False)
-    assert group.refusal() is None
-    group.run()
-    for trainer in group.trainers:
-        _check_stored(trainer)
-
-
-def test_the_seeds_path_refuses_the_weighted_actor_loss_in_one_line():
-    """``q.weight_actor_loss`` checks ŵ's sign with data-dependent control flow, which torch.vmap cannot trace: the
-    seeds then train one at a time (``ratio.aggregate=episode`` itself is vectorised)."""
-    from torchrl_wbrm.training import WBRMConfig
-    from torchrl_wbrm.training.seeds import not_vectorised
-
-    cfg = WBRMConfig(seeds=[0, 1])
-    cfg.ratio.aggregate = "episode"
-    assert not_vectorised(cfg) is None
-    cfg.q.weight_actor_loss = True
-    assert not_vectorised(cfg) == "q.weight_actor_loss is not vectorised over seeds"

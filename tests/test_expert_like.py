@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.references import seed_group_after_stage_1, tiny_lqr_config
+from tests.references import tiny_lqr_config
 from torchrl_wbrm.ratio import compute_density_ratio, expert_like_episodes
 from torchrl_wbrm.training.config import WBRMConfig, validate_config
 
@@ -164,18 +164,6 @@ def test_a_setting_that_reads_ds_episodes_is_refused_before_stage_1_on_data_with
     with pytest.raises(ValueError, match=rf"^{setting} needs D's episode ids \(key 'episode'\), which these data do "
                                          r"not hold: .+\.$"):
         WBRMTrainer(tiny_lqr_config(layer), tmp_path / "run", progress=False)
-
-
-def test_the_seeds_clone_their_own_extended_sets(tmp_path):
-    """Seeds in one process: each seed's S^e batches come from its own trainer's extended cloning set."""
-    group = seed_group_after_stage_1(tiny_lqr_config(seeds=[0, 1], q={"expert_bc_from_d": True}), tmp_path / "seeds")
-    update = group.q_update()
-    try:
-        sizes = [len(t.algo.cloning.buffer) for t in group.trainers]
-        assert all(t.algo.cloning.added_rows > 0 for t in group.trainers)
-        assert update.expert.lengths == sizes
-    finally:
-        update.close()
 
 
 # ---------------------------------------------------------------- on a benchmark task

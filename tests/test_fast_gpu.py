@@ -145,7 +145,6 @@ def test_seeds_in_one_process_on_cuda(tmp_path):
     from tests.test_training import tiny_config
 
     out = run_seeds(tiny_config(algo="wbrm", device="cuda", seeds=[0, 1]), tmp_path / "run", progress=False)
-    assert out["not_vectorised_because"] is None
     assert len(out["runs"]) == 2 and all(r["final"]["return"] == r["final"]["return"] for r in out["runs"])
 
 

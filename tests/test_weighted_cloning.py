@@ -1,6 +1,6 @@
 """``q.expert_bc_weighted_d``: the actor also clones the D batch, each row weighted by its stored ŵ and the term
 self-normalised over the batch (:func:`~torchrl_wbrm.objectives.functional.action_cloning`, used by
-:class:`~torchrl_wbrm.algos.base.ExpertCloning` and the vectorised seeds step)."""
+:class:`~torchrl_wbrm.algos.base.ExpertCloning`)."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
-from tests.references import seed_group_after_stage_1, tiny_lqr_config
+from tests.references import tiny_lqr_config
 from torchrl_wbrm.algos.base import ExpertCloning
 from torchrl_wbrm.modules import make_deterministic_actor, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
@@ -188,42 +188,12 @@ def test_the_setting_is_off_by_default_and_checked():
 
 
 # ---------------------------------------------------------------- the seeds in one process
-def test_the_vectorised_actor_loss_is_each_seeds_own(tmp_path):
-    """The seeds' vmapped actor step computes, for each seed, its own trainer's actor loss with the weighted term on
-    that seed's D batch and stored ŵ."""
-    from torchrl_wbrm.training.seeds import _expert_cloning, _Given, not_vectorised
-
-    cfg = tiny_lqr_config(seeds=[0, 1], q={"expert_bc_weighted_d": True})
-    assert not_vectorised(cfg) is None
-    group = seed_group_after_stage_1(cfg, tmp_path / "seeds")
-    assert group.refusal() is None
-    update = group.q_update()
-    try:
-        batch, expert = update.sample(cfg.q.actor_delay)
-        assert expert is not None
-        losses, figures = update.vmapped_actor(update.stacked, batch, expert)
-    finally:
-        update.close()
-    assert set(figures) >= {"expert_bc_loss", "weighted_d_bc_loss"}
-    for i, trainer in enumerate(group.trainers):
-        w = batch[i]["density_ratio"]
-        assert w.min() < w.max()  # a learned ŵ: the rows weigh differently
-        loss = trainer.algo.loss
-        cloning = _expert_cloning(trainer)
-        cloning.buffer = _Given(expert[i])
-        q_loss, diagnostics = loss.actor_loss(batch[i])
-        own, own_figures = cloning(q_loss, diagnostics["actor_q_abs_mean"], loss.actor_network_params, batch[i])
-        torch.testing.assert_close(losses[i], own.detach(), rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(figures["weighted_d_bc_loss"][i], own_figures["weighted_d_bc_loss"],
-                                   rtol=1e-5, atol=1e-6)
-
-
-def test_brm_with_weighted_d_clones_all_of_d_in_a_vectorised_run(tmp_path):
+def test_brm_with_weighted_d_clones_all_of_d_in_a_multi_seed_run(tmp_path):
     from torchrl_wbrm.training.seeds import run_seeds
 
     cfg = tiny_lqr_config(algo="brm", seeds=[0, 1], q={"expert_bc_weighted_d": True})
     results = run_seeds(cfg, tmp_path / "brm", progress=False)
-    assert results["vectorised"] and results["status"] == "finished"
+    assert results["status"] == "finished"
     history = json.loads((tmp_path / "brm" / "seed0" / "history.json").read_text())
     rows = [r for r in history if r.get("stage") == "q_train" and "weighted_d_bc_loss" in r]
     assert rows and all(r["weighted_d_bc_loss"] >= 0 for r in rows)
