@@ -309,7 +309,8 @@ def main(argv=None) -> None:
         print(json.dumps(peer_train(data, algo, int(steps), int(seed), policy)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from torchrl_wbrm.training.docs_fragments import docs_dir_from_args, publish_study
+    sys.path.insert(0, str(ROOT / "recipes"))  # the studies' docs writer lives beside the recipes
+    from studies.docs_fragments import docs_dir_from_args, publish_study
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,7 @@ import argparse
 import os
 from pathlib import Path
 
-from torchrl_wbrm.training.runs import study_budget
+from studies.runs import study_budget
 
 COMMON = ["env=lqr_exp1", *study_budget("quiet")]
 DEFAULT = "default"
@@ -125,7 +125,7 @@ def main() -> None:
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/ablations; --quick: results/ablations_quick)")
     parser.add_argument("--report-only", action="store_true")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()
@@ -133,7 +133,7 @@ def main() -> None:
     out = Path(args.out or ("results/ablations_quick" if args.quick else "results/ablations"))  # a smoke run never mixes with the full one
     cells = build_cells(args.quick)
     if not args.report_only:
-        from torchrl_wbrm.training.runs import run_cells
+        from studies.runs import run_cells
 
         run_cells(cells, range(1 if args.quick else args.seeds), study_budget("table_quick" if args.quick else "table"),
                   out, jobs=args.jobs)

@@ -16,7 +16,7 @@ seed's) and the wall seconds per run (``--out`` default ``results/few_demonstrat
 Every run is the main recipe with the dataset keys only (``env=minari env.minari.expert=... env.minari.behaviour=...``)
 plus ``algo=<name>``; ``--budgets`` multiplies the env's default ``q.steps`` (and ``q.eval_every``), to check that a
 longer run does not lose return. Runs go through the studies' shared runner
-(:func:`torchrl_wbrm.training.runs.run_cells`: a cell's seeds in one process) into
+(:func:`studies.runs.run_cells` (``recipes/studies/runs.py``): a cell's seeds in one process) into
 ``<out>/<task>/<algo>/x<budget>/seed<seed>``; a finished run is not run again. ``tables.md`` then gives, per task
 and algorithm, the normalised score (0 = uniform random actions, 100 = the expert; the datasets' Minari reference
 scores) as mean ± 95% CI over seeds, the raw return, the behaviour data's own score, how many runs were flagged
@@ -250,7 +250,7 @@ def main(argv=None) -> None:
                         help="recipe overrides for every run, before each cell's own; a q.steps or q.eval_every "
                              "given here is what --budgets multiplies")
     parser.add_argument("--report-only", action="store_true")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
@@ -267,7 +267,7 @@ def main(argv=None) -> None:
     from torchrl_wbrm.data.benchmark import benchmark_ids, make_benchmark
     from torchrl_wbrm.data.minari_data import minari_data_root
     from torchrl_wbrm.tasks import MinariTask
-    from torchrl_wbrm.training.runs import run_cells
+    from studies.runs import run_cells
 
     few = args.few_demonstrations
     out = Path(args.out or ("results/few_demonstrations" if few else "results/benchmark")).resolve()

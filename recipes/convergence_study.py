@@ -163,13 +163,13 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/convergence_study; --quick: results/convergence_study_quick)")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/convergence_study_quick" if args.quick else "results/convergence_study"))  # a smoke run never mixes with the full one
-    from torchrl_wbrm.training.runs import cell_dir, run_cells, study_budget
+    from studies.runs import cell_dir, run_cells, study_budget
 
     cells, seeds = build_cells(args.quick, args.ratio_sizes, args.q_sizes), range(1 if args.quick else args.seeds)
     budget = [*study_budget("convergence"), *(study_budget("convergence_quick") if args.quick else [])]

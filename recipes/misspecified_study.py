@@ -213,7 +213,7 @@ def main() -> None:
     parser.add_argument("--mlp-steps", type=int, default=1000, help="Adam steps of each MLP's FQE fit")
     parser.add_argument("--quick", action="store_true", help="a smoke version: 1 seed, small data and budgets")
     parser.add_argument("--out", default=None, help="output folder (default results/misspecified_q[_quick])")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()

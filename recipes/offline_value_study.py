@@ -30,7 +30,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000, help="Adam steps of each FQE fit")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default=None)
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()

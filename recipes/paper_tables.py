@@ -20,7 +20,7 @@ envs' cells again at other step budgets, each its own runs on the same data and 
 run always improves at its end; whether the table's budget suffices shows only against runs of a larger one
 (:func:`budget_table`, ``budget_check.png``).
 
-Every (env, algorithm, seed) runs through the studies' shared runner (``torchrl_wbrm.training.runs.run_cells``: an
+Every (env, algorithm, seed) runs through the studies' shared runner (``studies.runs.run_cells`` (``recipes/studies/runs.py``): an
 (env, algorithm)'s seeds in one local process, ``--jobs`` of them at a time, or a Hydra launcher with ``--launcher``)
 into ``<out>/<env>/<algo>/seed<seed>``; every algorithm sees the same data for a given seed, collected once into a
 ``data_cache``. Then it writes ``tables.md``:
@@ -101,7 +101,7 @@ def build_budget_cells(envs: list[str], algos: list[str], out: Path, quick: bool
 
 def _unfinished(cells: list[dict], seeds, out: Path) -> int:
     """How many of the (cell, seed) runs under ``out`` have no ``results.json`` yet."""
-    from torchrl_wbrm.training.runs import cell_dir
+    from studies.runs import cell_dir
 
     return sum(not (cell_dir(out, cell, seed, labels=LABELS) / "results.json").is_file()
                for cell in cells for seed in seeds)
@@ -617,7 +617,7 @@ def main() -> None:
                         help="where the runs and tables go (default results/paper_tables; --quick: results/paper_tables_quick)")
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild tables.md and the figures from finished runs")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, budget_text, docs_dir_from_args, \
+    from studies.docs_fragments import add_docs_dir_argument, budget_text, docs_dir_from_args, \
         publish_study
 
     add_docs_dir_argument(parser)
@@ -629,7 +629,7 @@ def main() -> None:
         raise SystemExit(f"Unknown algorithms {unknown}: choose from {available_algos()} (torchrl_wbrm/algos/).")
     if not args.report_only:
         from torchrl_wbrm.training.results import write_json
-        from torchrl_wbrm.training.runs import run_cells, study_budget
+        from studies.runs import run_cells, study_budget
 
         os.environ.setdefault("MPLBACKEND", "Agg")
         seeds = range(1 if args.quick else args.seeds)
@@ -660,7 +660,7 @@ def main() -> None:
     budget = table_budget(load_results(out))
     figures = [plot(out), plot_learning_curves(out), plot_budget_check(out, budget) if budget is not None else None]
     print(text)
-    from torchrl_wbrm.training.runs import study_budget
+    from studies.runs import study_budget
 
     name = "table_quick" if args.quick else "table"
     steps = args.budget_steps or ([5, 20] if args.quick else BUDGET_CHECK_STEPS)

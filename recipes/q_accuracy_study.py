@@ -399,7 +399,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/q_accuracy_study; --quick: results/q_accuracy_study_quick)")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()
@@ -408,7 +408,7 @@ def main() -> None:
         parser.error(f"--blocks: unknown {unknown}; choose from {[*BLOCKS, *OTHER_BLOCKS]}")
     os.environ.setdefault("MPLBACKEND", "Agg")
     out = Path(args.out or ("results/q_accuracy_study_quick" if args.quick else "results/q_accuracy_study"))  # a smoke run never mixes with the full one
-    from torchrl_wbrm.training.runs import run_cells, study_budget
+    from studies.runs import run_cells, study_budget
 
     budget = study_budget("quick" if args.quick else "q_accuracy")
 

@@ -244,7 +244,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=None,
                         help="where the runs and tables go (default results/weighting_study; --quick: results/weighting_study_quick)")
-    from torchrl_wbrm.training.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
 
     add_docs_dir_argument(parser)
     args = parser.parse_args()
@@ -258,7 +258,7 @@ def main() -> None:
         parser.error(f"--first-seed must be >= 0 and --seeds >= 1, got --first-seed {args.first_seed} "
                      f"--seeds {args.seeds}")
     seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
-    from torchrl_wbrm.training.runs import run_cells, study_budget
+    from studies.runs import run_cells, study_budget
 
     budget = study_budget("quick" if args.quick else "weighting")
 

@@ -40,7 +40,7 @@ def _restored_process_state(cwd, env: dict | None):
 
     saved_env = dict(os.environ)
     saved_cwd = os.getcwd()
-    saved_argv = list(sys.argv)
+    saved_argv, saved_path = list(sys.argv), list(sys.path)
     handlers = {sig: signal.getsignal(sig) for sig in _SIGNALS}
     threads = torch.get_num_threads()
     levels = {name: logging.getLogger(name).level for name in (*CHATTY_LOGGERS, "hydra")}
@@ -56,7 +56,7 @@ def _restored_process_state(cwd, env: dict | None):
         os.chdir(saved_cwd)
         os.environ.clear()
         os.environ.update(saved_env)
-        sys.argv[:] = saved_argv
+        sys.argv[:], sys.path[:] = saved_argv, saved_path
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
         torch.set_num_threads(threads)
@@ -81,6 +81,7 @@ def run_script(script: str | os.PathLike, *args: str, cwd=ROOT, env: dict | None
     out, err = io.StringIO(), io.StringIO()
     with _restored_process_state(cwd, env):
         sys.argv[:] = [script, *map(str, args)]
+        sys.path.insert(0, str(Path(script).parent))  # as python does: the script's folder first
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
                 runpy.run_path(script, run_name="__main__")

@@ -215,7 +215,7 @@ def test_no_recipe_imports_another_and_the_studies_share_one_runner():
 
 def test_the_studies_budgets_are_read_from_the_yaml():
     """``configs/study_budgets.yaml`` holds the studies' budgets; an alias splices another budget in at its place."""
-    from torchrl_wbrm.training.runs import study_budget
+    from studies.runs import study_budget
 
     assert study_budget("table") == ["q.num_cells=[128,128]", "q.actor_num_cells=[128,128]", "q.steps=2000",
                                      "q.eval_every=500", "eval.train_episodes=200", "baselines.cql.num_random=4"]
@@ -251,8 +251,8 @@ def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path, monkeypatch):
     """``run_cells(..., launcher=...)``: one Hydra multirun per cell (here Hydra's joblib launcher), each run in its
     cell directory with the cell's labels in its results, as a local run writes them; finished runs are skipped. The
     multirun command the runner starts runs in this process (tests/test_launchers.py starts one as its own python)."""
-    from torchrl_wbrm.training import runs
-    from torchrl_wbrm.training.runs import cell_dir, run_cells, study_budget
+    from studies import runs
+    from studies.runs import cell_dir, run_cells, study_budget
 
     monkeypatch.setattr(runs, "subprocess", SimpleNamespace(run=_in_this_process))
 
@@ -274,7 +274,7 @@ def test_the_runner_runs_cells_through_a_hydra_launcher(tmp_path, monkeypatch):
 def test_a_finished_run_is_reused_only_under_its_own_settings(tmp_path):
     """``run_overrides`` reads a finished run back without training, if it ran with the same config; a changed
     setting that changes a figure is refused by name, one that cannot (threads, plots, the logger) is not."""
-    from torchrl_wbrm.training.runs import compose_recipe_config, run_overrides
+    from studies.runs import compose_recipe_config, run_overrides
     from torchrl_wbrm.training.config import config_as_dict
 
     overrides = ["algo=brm", "env=lqr_exp1", "q.steps=7", "logger=none", "plots=false"]

@@ -281,7 +281,7 @@ def test_the_benchmark_rerun_after_an_interruption_is_one_line(tmp_path, capsys)
 # ---------------------------------------------------------------------- a multi-seed run stopped, then resumed
 def _seed_cfg(seed: int, *extra: str):
     from torchrl_wbrm.training.config import to_config
-    from torchrl_wbrm.training.runs import compose_recipe_config
+    from studies.runs import compose_recipe_config
     from torchrl_wbrm.training.seeds import seed_config
 
     return seed_config(to_config(compose_recipe_config([*TINY, "seeds=[0,1]", *extra])), seed)

@@ -96,7 +96,7 @@ def test_each_results_page_includes_its_studys_fragment(study):
 def test_every_committed_fragment_names_the_command_that_writes_it():
     """Each fragment in docs/results/_generated/ has the header :func:`publish_study` writes: its first line names
     the study's command (one of the commands its page shows), its third the seeds, the budget and the interval."""
-    from torchrl_wbrm.training.docs_fragments import read_fragment
+    from studies.docs_fragments import read_fragment
 
     fragments = sorted((DOCS / "results" / "_generated").glob("*.md"))
     assert {p.stem for p in fragments} == set(STUDIES)
@@ -112,7 +112,7 @@ def test_every_committed_fragment_names_the_command_that_writes_it():
 def test_publish_study_writes_nothing_without_a_docs_dir(tmp_path):
     """``--docs-dir none`` and ``--quick`` without ``--docs-dir`` write nothing; a full study run from this clone
     writes into its docs/."""
-    from torchrl_wbrm.training.docs_fragments import default_docs_dir, docs_dir_from_args, publish_study
+    from studies.docs_fragments import default_docs_dir, docs_dir_from_args, publish_study
 
     assert docs_dir_from_args(None, quick=True) is None and docs_dir_from_args("none") is None
     assert docs_dir_from_args(None) == default_docs_dir() == DOCS

@@ -135,7 +135,7 @@ def test_the_readme_says_how_its_sample_output_and_its_headline_differ():
     budget: the README says so with the budgets that the recipe and configs/study_budgets.yaml hold, and its
     headline's WBRM row is the paper-tables fragment's."""
     from torchrl_wbrm.tasks import LQRTask
-    from torchrl_wbrm.training.runs import study_budget
+    from studies.runs import study_budget
     from tests.references import compose_recipe
 
     readme = (ROOT / "README.md").read_text()

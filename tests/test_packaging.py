@@ -73,6 +73,8 @@ def test_the_wheel_ships_the_configs_and_the_commands(wheel):
     assert [c for c in configs if c not in names] == []  # every config of the source tree, group folders included
     assert "torchrl_wbrm/configs/__init__.py" in names and not [n for n in names if n.startswith("configs/")]
     assert "torchrl_wbrm/cli.py" in names and "torchrl_wbrm/__main__.py" in names
+    # the library only: the studies' runner and docs writer stay in the clone (recipes/studies/)
+    assert not [n for n in names if n.endswith(("/runs.py", "/docs_fragments.py")) or n.startswith("studies/")]
     (entry_points,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
     assert "wbrm-offline = torchrl_wbrm.cli:wbrm_offline" in text

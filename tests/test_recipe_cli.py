@@ -355,7 +355,7 @@ def test_a_quick_study_never_writes_into_the_full_ones_folder(study, monkeypatch
     would otherwise be found, and refused, by the full study."""
     import importlib
 
-    from torchrl_wbrm.training import runs
+    from studies import runs
 
     monkeypatch.syspath_prepend(str(ROOT / "recipes"))
     module = importlib.import_module(study)

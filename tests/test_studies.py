@@ -50,7 +50,7 @@ def run_study_here(script: str, *args: str) -> subprocess.CompletedProcess:
 def test_weighting_study_quick(tmp_path):
     """The cheapest quick study with a figure, also with ``--docs-dir``: its docs fragment is its ``tables.md`` under
     a header naming the command, and its figure is copied (a quick run writes no fragment without ``--docs-dir``)."""
-    from torchrl_wbrm.training.docs_fragments import read_fragment
+    from studies.docs_fragments import read_fragment
 
     docs = tmp_path / "docs"
     run_study("weighting_study.py", "--jobs", "1", "--out", str(tmp_path), "--first-seed", "3", "--docs-dir", str(docs))
@@ -120,7 +120,7 @@ def test_a_cells_seeds_train_as_one_job_with_a_separate_runs_figures(tmp_path, m
     finished seeds of another config."""
     from torchrl_wbrm.training import seeds as seeds_module
     from torchrl_wbrm.training.reporting import load_results
-    from torchrl_wbrm.training.runs import SEEDS_RECORD, _overrides, cell_dir, run_cells, run_overrides, study_budget
+    from studies.runs import SEEDS_RECORD, _overrides, cell_dir, run_cells, run_overrides, study_budget
 
     jobs = []
     run_seeds = seeds_module.run_seeds
@@ -164,7 +164,7 @@ def test_a_cells_seeds_train_as_one_job_with_a_separate_runs_figures(tmp_path, m
 def test_a_cells_seeds_are_split_into_the_job_and_single_runs(tmp_path, monkeypatch):
     """Which of a cell's seeds the job trains: not the finished ones, nor one with a checkpoint (an interrupted single
     run, resumed on its own), nor a lone unfinished seed (a single run, which checkpoints)."""
-    from torchrl_wbrm.training import runs
+    from studies import runs
     from torchrl_wbrm.training.config import config_as_dict
 
     cell, budget, out = _cell("brm"), [*runs.study_budget("quick"), "q.steps=7"], tmp_path
