@@ -15,7 +15,6 @@ from pathlib import Path
 
 import torch
 
-from torchrl_wbrm.training.offline_value import offline_value_figures
 
 
 def _plain(value, key: str = "config") -> None:
@@ -31,7 +30,7 @@ def _plain(value, key: str = "config") -> None:
 
 
 def offline_value_of_run(run_dir, *, steps: int | None = None) -> tuple[dict, dict, dict]:
-    """The offline value of the policy a finished run delivered, as :func:`offline_value_figures` computes it at
+    """The offline value of the policy a finished run delivered, as the trainer's ``offline_value`` computes it at
     the end of the run: ``(final figures, record, run)`` where ``run`` names the env, algo, seed, step and the
     delivered step. ``run_dir/checkpoint.pt`` is read with ``torch.load(weights_only=True)``
     (:func:`~torchrl_wbrm.training.checkpoint.read_checkpoint`); the run's config is the one saved in it, and D is
@@ -61,9 +60,7 @@ def offline_value_of_run(run_dir, *, steps: int | None = None) -> tuple[dict, di
     try:
         evaluations = [r for r in trainer.history if r["stage"] == "q"]
         delivered = evaluations[-1].get("selected_step", trainer.state["step"]) if evaluations else None
-        figures, summary = offline_value_figures(
-            trainer.actor, trainer.q_train_data, trainer.evaluator.return_quantity(), weights=trainer.q_train_weights,
-            steps=steps or cfg.eval.offline_value_steps, seed=cfg.seed)
+        figures, summary = trainer.offline_value(steps)
     finally:
         trainer.release()
     run = {"env": cfg.env.name, "algo": cfg.algo, "seed": cfg.seed, "step": trainer.state["step"],
@@ -86,7 +83,9 @@ def main(argv: list[str] | None = None) -> None:
     if not figures:
         raise SystemExit(f"No estimate: {record['skipped']}.")
     print(f"quantity: {record['quantity']} ({record['episodes']} episodes of D; FQE, {record['steps']} steps)")
-    for key, name in (("offline_value", "FQE on D"), ("offline_value_weighted", "ŵ-weighted FQE on D")):
+    weighted = {"stage2": "ŵ-weighted FQE on D (stage 2's weights)",
+                "ratio": "ratio-weighted FQE on D (ŵ unshaped)"}.get(record.get("weights"), "ŵ-weighted FQE on D")
+    for key, name in (("offline_value", "FQE on D"), ("offline_value_weighted", weighted)):
         if key in figures:
             print(f"{name}: {figures[key]:.4f} ± {figures[f'{key}_ci']:.4f}   "
                   f"(95% CI [{figures[f'{key}_low']:.4f}, {figures[f'{key}_high']:.4f}], over D's episodes)")

@@ -50,7 +50,7 @@ def test_the_run_records_and_prints_the_offline_value(tmp_path):
     lines = proc.stdout.splitlines()
     assert lines[0].endswith("env lqr_exp1  algo wbrm  seed 0  delivered step 40 of 40")
     assert f"FQE on D: {final['offline_value']:.4f} ± {final['offline_value_ci']:.4f}" in proc.stdout
-    assert f"ŵ-weighted FQE on D: {final['offline_value_weighted']:.4f}" in proc.stdout
+    assert f"ŵ-weighted FQE on D (stage 2's weights): {final['offline_value_weighted']:.4f}" in proc.stdout
     assert "at most 20 steps" in proc.stdout and lines[-1].startswith("The environment was not run")
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "on").rglob("*")} == before
 
@@ -71,3 +71,28 @@ def test_without_a_ratio_there_is_one_estimate_and_an_unstated_quantity_none(tmp
     assert results["offline_value"]["weighted"] is False and results["offline_value"]["steps"] == 50
     figures, record = offline_value_figures(trainer.actor, trainer.q_train_data, None)
     assert figures == {} and "does not state" in record["skipped"]
+
+
+def test_ratio_weighted_fqe_reads_the_unshaped_ratio(tmp_path):
+    """``eval.offline_value_weights=ratio``: the weighted estimate is FQE weighted by ŵ itself over D's training
+    rows, self-normalised, not by stage 2's shaped weights (ŵ^λ with the default λ < 1)."""
+    from torchrl_wbrm.ratio import compute_density_ratio
+
+    settings = {"offline_value": True, "offline_value_steps": 50}
+    shaped = WBRMTrainer(tiny_lqr_config(eval=settings), tmp_path / "stage2", progress=False)
+    shaped_results = shaped.run()
+    trainer = WBRMTrainer(tiny_lqr_config(eval={**settings, "offline_value_weights": "ratio"}), tmp_path / "ratio",
+                          progress=False)
+    results = trainer.run()
+    assert results["offline_value"]["weights"] == "ratio" and shaped_results["offline_value"]["weights"] == "stage2"
+    assert results["final"]["offline_value"] == shaped_results["final"]["offline_value"]  # the unweighted one
+    assert results["final"]["offline_value_weighted"] != shaped_results["final"]["offline_value_weighted"]
+    w = compute_density_ratio(trainer.ratio_network, trainer.q_train_data).reshape(-1, 1).double()
+    expected, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.evaluator.return_quantity(),
+                                        weights=(w / w.mean()).float(), steps=50, seed=0)
+    assert results["final"]["offline_value_weighted"] == pytest.approx(expected["offline_value_weighted"], rel=1e-6)
+
+
+def test_the_weighting_of_the_offline_value_is_a_choice():
+    with pytest.raises(ValueError, match=r"eval.offline_value_weights='raw' is not allowed: choose one of"):
+        WBRMTrainer(tiny_lqr_config(eval={"offline_value_weights": "raw"}), progress=False)

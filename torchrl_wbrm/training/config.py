@@ -241,6 +241,12 @@ class EvalConfig:
             return (exp1: within 0.2 of the online return); a return over hundreds of undiscounted steps needs far
             more (the MountainCar Minari example's: 250 at 2000 steps and 211 at 5000 against 95 online), which
             is why the estimate is opt-in: its interval covers the start states only, not the fit's error.
+        offline_value_weights: the weights of the ŵ-weighted estimate (``final.offline_value_weighted``):
+            ``"stage2"`` (the default), the weights stage 2 gave D's rows (``ratio.temper``, ``ratio.clip``,
+            ``ratio.aggregate``, ``ratio.mix`` applied); ``"ratio"``, ratio-weighted FQE: the fitted ŵ itself before
+            any of that shaping, self-normalised over D's rows. Use ``"ratio"`` to value a policy close to the
+            expert from behaviour data that cover much more than the expert visits (docs: results/misspecified_q).
+            Only an algo that fits ŵ (``wbrm``, ``mabo``, ...) has a weighted estimate.
     """
 
     episodes: Optional[int] = None
@@ -249,6 +255,7 @@ class EvalConfig:
     q_samples: int = 10_000
     offline_value: bool = False
     offline_value_steps: int = 2000
+    offline_value_weights: str = "stage2"
 
 
 @dataclass
@@ -411,6 +418,7 @@ _CHOICES = {
     "q.lr_schedule": ("constant", "cosine"),
     "q.select": ("last", "held_out_residual", "held_out_weighted_residual", "expert_like_action",
                  "expert_like_return"),
+    "eval.offline_value_weights": ("stage2", "ratio"),
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }

@@ -578,6 +578,22 @@ class WBRMTrainer:
             figures["separable_true_episodes"] = int(episode[true_rows & (score > best_other)].unique().numel())
         return rows, figures
 
+    def offline_value(self, steps: int | None = None) -> tuple[dict, dict]:
+        """The current actor's value from D's training episodes alone, without the environment
+        (:func:`~torchrl_wbrm.training.offline_value.offline_value_figures`: FQE, and where stage 2 read ŵ, FQE
+        weighted as ``eval.offline_value_weights`` says): ``(final figures, record)``. ``steps``: FQE's steps
+        (default ``eval.offline_value_steps``). Runs on a forked generator: training draws what it would without it."""
+        weights = self.q_train_weights
+        if weights is not None and self.cfg.eval.offline_value_weights == "ratio":  # ŵ before any shaping
+            w = self._raw_weights(self.q_train_data, self.cfg.ratio.source).reshape(-1, 1).double()
+            weights = (w / w.mean()).to(self.q_train_weights.dtype)
+        with torch.random.fork_rng():
+            figures, record = offline_value_figures(
+                self.actor, self.q_train_data, self.evaluator.return_quantity(), weights=weights,
+                steps=steps or self.cfg.eval.offline_value_steps, seed=self.cfg.seed)
+        record["weights"] = None if weights is None else self.cfg.eval.offline_value_weights
+        return figures, record
+
     def _check_ratio(self, w: torch.Tensor) -> dict:
         """Stage 1's outcome, as the fitter judges it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`, the one
         rule) with the stored ŵ over D (raw, before shaping): its ``"flags"`` (``ratio_collapse``,
@@ -846,9 +862,7 @@ class WBRMTrainer:
             self.history, self.cfg.q.select, self.q_select_figure, episodes=self.cfg.eval.episodes,
             train_episodes=self.cfg.eval.train_episodes, steps=self.cfg.q.steps)
         if self.cfg.eval.offline_value:  # the delivered actor's value by FQE on D: no environment
-            figures, results["offline_value"] = offline_value_figures(
-                self.actor, self.q_train_data, self.evaluator.return_quantity(), weights=self.q_train_weights,
-                steps=self.cfg.eval.offline_value_steps, seed=self.cfg.seed)
+            figures, results["offline_value"] = self.offline_value()
             results["final"] = {**results["final"], **figures}
         results["q_scale"] = self._q_scale(results["final"])
         results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
