@@ -232,6 +232,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--fqe-steps", type=int, default=2000, help="Adam steps of each FQE fit")
     parser.add_argument("--overrides", nargs="*", default=[], help="recipe settings for every cell (a smoke test's)")
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+
+    add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
     records_path = args.out / "checkpoints.jsonl"
     if args.mode == "run":
@@ -253,6 +256,13 @@ def main(argv: list[str] | None = None) -> None:
     text = report(records)
     (args.out / "tables.md").write_text(text, encoding="utf-8")
     print(text)
+    if args.mode == "report":  # the docs' tables come from the records of every cell, never from a partial run
+        seeds = "; ".join(f"{c} {sorted(r['seed'] for r in records if r['cell'] == c)}"
+                          for c in dict.fromkeys(r["cell"] for r in records))
+        steps = sorted({r["fqe_steps"] for r in records})
+        publish_study("offline_value_validation", args.out / "tables.md", docs_dir_from_args(args.docs_dir),
+                      seeds=seeds, budget=f"each cell's recipe defaults; FQE {', '.join(map(str, steps))} Adam steps "
+                      "per estimate (batch 256, lr 1e-3, τ 0.05, a 2×64 SiLU Q)")
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ def test_the_figures_of_one_run_by_hand():
 def test_the_command_values_every_checkpoint_of_a_tiny_run(tmp_path):
     out = tmp_path / "out"
     proc = run_script(SCRIPT, "run", "--cells", "lqr_exp1", "--seeds", "0", "--out", str(out), "--fqe-steps", "30",
-                      "--overrides", *TINY)
+                      "--docs-dir", "none", "--overrides", *TINY)
     assert proc.returncode == 0, proc.stderr
     (rec,) = [json.loads(line) for line in (out / "checkpoints.jsonl").read_text().splitlines()]
     history = json.loads((out / "runs" / "lqr_exp1_seed0" / "history.json").read_text())
@@ -62,5 +62,9 @@ def test_the_command_values_every_checkpoint_of_a_tiny_run(tmp_path):
         assert row["return"] == online["return"]
         assert row["offline_value"] == row["offline_value"] and row["offline_value_weighted"] == row["offline_value_weighted"]
     assert "### Regret@1 of each selection criterion" in proc.stdout and "| lqr_exp1 |" in proc.stdout
-    again = run_script(SCRIPT, "run", "--cells", "lqr_exp1", "--seeds", "0", "--out", str(out), "--overrides", *TINY)
+    again = run_script(SCRIPT, "report", "--cells", "lqr_exp1", "--out", str(out), "--docs-dir", str(tmp_path / "docs"))
+    fragment = (tmp_path / "docs" / "results" / "_generated" / "offline_value_validation.md").read_text()
+    assert again.returncode == 0 and "lqr_exp1 [0]" in fragment and "| lqr_exp1 |" in fragment
+    again = run_script(SCRIPT, "run", "--cells", "lqr_exp1", "--seeds", "0", "--out", str(out), "--docs-dir", "none",
+                       "--overrides", *TINY)
     assert again.returncode == 0 and "seed 0:" not in again.stdout  # a finished (cell, seed) is not run again
