@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT / "recipes"))
 
 import convergence_study  # noqa: E402
 import paper_tables  # noqa: E402
+from studies import paper_tables_report  # noqa: E402
 
 SIZES = [1000, 2000, 4000, 8000, 16000, 32000]
 
@@ -116,7 +117,7 @@ def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
 
     from torchrl_wbrm.training.reporting import load_results
 
-    curves = paper_tables.learning_curves(load_results(tmp_path))
+    curves = paper_tables_report.learning_curves(load_results(tmp_path))
     wbrm = curves[("lqr_exp1", "wbrm")]
     assert wbrm["metric"] == "regret" and wbrm["steps"] == [500, 1000, 1500, 2000] and wbrm["budget"] == [2000]
     assert wbrm["mean"] == pytest.approx([0.5, 0.3, 0.2, 0.2]) and wbrm["n"] == [2, 2, 2, 2]
@@ -125,7 +126,7 @@ def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
     assert curves[("mountain_car", "wbrm")]["metric"] == "return"
     assert curves[("mountain_car", "wbrm")]["budget"] == [3000]
 
-    verdicts = {k: paper_tables.curve_verdict(c) for k, c in curves.items()}
+    verdicts = {k: paper_tables_report.curve_verdict(c) for k, c in curves.items()}
     # wbrm: the seeds' changes -0.005 and +0.005 average 0, a paired interval over the two seeds covers it: flat
     wbrm_v = verdicts[("lqr_exp1", "wbrm")]
     assert wbrm_v["verdict"] == "flat" and wbrm_v["vs_previous"][0] == pytest.approx(0.0, abs=1e-12)
@@ -142,7 +143,7 @@ def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
     assert car["verdict"] == "still improving" and car["vs_previous"][0] == pytest.approx(3.0)
     assert car["best"] == pytest.approx(90.0)
 
-    text = paper_tables.tables(tmp_path)
+    text = paper_tables_report.tables(tmp_path)
     assert "### Budget and convergence" in text
     assert ("| lqr_exp1 | fqi | regret | 2000 | 4 | 0.1000 | 0.2000 | 0.0500 (1000) | +0.1000 [+0.0859, +0.1141] "
             "| +0.1500 [+0.1359, +0.1641] | past its best |") in text
@@ -151,7 +152,7 @@ def test_learning_curves_and_the_budget_table_on_synthetic_runs(tmp_path):
     assert ("| mountain_car | wbrm | return | 3000 | 3 | 90.00 | 93.00 | 90.00 (2000) | +3.00 [+2.99, +3.01] "
             "| +3.00 [+2.99, +3.01] | still improving |") in text
 
-    path = paper_tables.plot_learning_curves(tmp_path)
+    path = paper_tables_report.plot_learning_curves(tmp_path)
     assert path == tmp_path / "learning_curves.png" and path.stat().st_size > 10_000
 
 
@@ -164,10 +165,10 @@ def test_a_change_within_the_evaluation_noise_is_flat_not_past_its_best(tmp_path
     history.write_text(history.read_text().replace('"regret_ci": 0.01', '"regret_ci": 0.001'))
     from torchrl_wbrm.training.reporting import load_results
 
-    noisy = paper_tables.learning_curves(load_results(tmp_path / "noisy"))[("lqr_exp1", "brm")]
-    sharp = paper_tables.learning_curves(load_results(tmp_path / "sharp"))[("lqr_exp1", "brm")]
-    assert paper_tables.curve_verdict(noisy)["verdict"] == "flat"
-    assert paper_tables.curve_verdict(sharp)["verdict"] == "past its best"
+    noisy = paper_tables_report.learning_curves(load_results(tmp_path / "noisy"))[("lqr_exp1", "brm")]
+    sharp = paper_tables_report.learning_curves(load_results(tmp_path / "sharp"))[("lqr_exp1", "brm")]
+    assert paper_tables_report.curve_verdict(noisy)["verdict"] == "flat"
+    assert paper_tables_report.curve_verdict(sharp)["verdict"] == "past its best"
 
 
 def test_the_budget_check_compares_whole_runs_at_other_budgets(tmp_path):
@@ -175,7 +176,7 @@ def test_the_budget_check_compares_whole_runs_at_other_budgets(tmp_path):
     paired interval (not converged), wbrm moves within the noise (converged), fqi is worse with more steps; the
     check's runs stay out of the grid's tables."""
     out = tmp_path / "paper_tables"
-    check = paper_tables.budget_check_dir(out)
+    check = paper_tables_report.budget_check_dir(out)
     assert check == tmp_path / "paper_tables_budget_check"
     finals = {"td3bc": {1000: [0.09, 0.11, 0.10], 2000: [0.05, 0.07, 0.06], 4000: [0.02, 0.03, 0.025]},
               "wbrm": {1000: [0.02, 0.03, 0.01], 2000: [0.010, 0.012, 0.008], 4000: [0.011, 0.009, 0.010]},
@@ -186,29 +187,29 @@ def test_the_budget_check_compares_whole_runs_at_other_budgets(tmp_path):
             for seed, v in enumerate(values):
                 _run(root, "lqr_exp1", algo, seed, {steps: v})
     _run(out, "lqr_exp2", "wbrm", 0, {2000: 0.5})  # an env the check did not run: not in its table
-    curves = paper_tables.budget_curves(out)
+    curves = paper_tables_report.budget_curves(out)
     assert set(curves) == {("lqr_exp1", "td3bc"), ("lqr_exp1", "wbrm"), ("lqr_exp1", "fqi")}
     assert curves[("lqr_exp1", "td3bc")]["runs"][4000] == {0: 0.02, 1: 0.03, 2: 0.025}
-    verdicts = {a: paper_tables.budget_verdict(curves[("lqr_exp1", a)], 2000) for a in finals}
+    verdicts = {a: paper_tables_report.budget_verdict(curves[("lqr_exp1", a)], 2000) for a in finals}
     assert verdicts["td3bc"]["verdict"] == "not converged" and verdicts["td3bc"]["longest"] == 4000
     assert verdicts["td3bc"]["change"][0] == pytest.approx(-0.035)
     assert verdicts["wbrm"]["verdict"] == "converged"
     assert verdicts["fqi"]["verdict"] == "worse with more steps"
-    assert paper_tables.budget_verdict({"metric": "regret", "runs": {2000: {0: 0.1}}}, 2000)["verdict"] == "n/a"
+    assert paper_tables_report.budget_verdict({"metric": "regret", "runs": {2000: {0: 0.1}}}, 2000)["verdict"] == "n/a"
 
     from torchrl_wbrm.training.reporting import load_results
 
     records = load_results(out)
-    assert paper_tables.table_budget(records) == 2000
+    assert paper_tables_report.table_budget(records) == 2000
     assert {r["config"]["q"]["steps"] for r in records} == {2000}  # the grid's tables read the grid's runs only
-    text = paper_tables.tables(out)
+    text = paper_tables_report.tables(out)
     assert "### Budget check" in text
     assert "| env | algorithm | figure | 1000 steps | 2000 steps (table) | 4000 steps | largest − 2000 [95% CI] |" in text
     assert "| lqr_exp1 | fqi | regret | – | 0.0110 ± 0.0025 | 0.0210 ± 0.0025 | +0.0100 [" in text
     assert "| lqr_exp1 | td3bc | regret | 0.1000 ± 0.0248 | 0.0600 ± 0.0248 | 0.0250 ± 0.0124 |" in text
-    path = paper_tables.plot_budget_check(out, 2000)
+    path = paper_tables_report.plot_budget_check(out, 2000)
     assert path == out / "budget_check.png" and path.stat().st_size > 10_000
-    assert paper_tables.budget_table(tmp_path / "elsewhere", 2000) == ""  # no check ran: no section
+    assert paper_tables_report.budget_table(tmp_path / "elsewhere", 2000) == ""  # no check ran: no section
 
 
 def test_the_learning_curves_figure_draws_a_panel_per_env_and_a_line_per_budget(tmp_path, monkeypatch):
@@ -222,7 +223,7 @@ def test_the_learning_curves_figure_draws_a_panel_per_env_and_a_line_per_budget(
     _run(tmp_path, "mountain_car", "wbrm", 0, {1000: 80.0, 2000: 90.0}, lqr=False)
     figures = []
     monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to look at it
-    paper_tables.plot_learning_curves(tmp_path)
+    paper_tables_report.plot_learning_curves(tmp_path)
     (fig,) = figures
     lqr, car = fig.axes
     assert lqr.get_yscale() == "log" and car.get_yscale() == "linear"
@@ -243,7 +244,7 @@ def test_paper_tables_cover_every_lqr_env_that_ran(tmp_path):
     _run(tmp_path, "lqr_exp1", "wbrm", 0, {1000: 0.02, 2000: 0.01}, optimum=85.435)
     _run(tmp_path, "lqr_nondiag", "wbrm", 0, {1000: 0.5, 2000: 0.25}, optimum=71.25)
     _run(tmp_path, "lqr_nondiag", "td3bc", 0, {1000: 0.5, 2000: 0.125}, optimum=71.25)
-    text = paper_tables.tables(tmp_path)
+    text = paper_tables_report.tables(tmp_path)
     assert "| algorithm | lqr_exp1 return | lqr_nondiag return | paper (exp1, exp2, exp3) |" in text
     assert "| exact optimum | 85.435 | 71.250 | 87.84 (the reward cap) |" in text
     assert "| wbrm | 85.425 | 71.000 | 86.65, 86.74, 87.10 |" in text
@@ -254,7 +255,7 @@ def test_paper_tables_cover_every_lqr_env_that_ran(tmp_path):
     assert "| td3bc | – | 0.1250 |" in text  # the regret table
     assert "Table 3" not in text
     assert "| lqr_nondiag | td3bc | regret | 2000 | 2 |" in text
-    paper_tables.plot(tmp_path)
+    paper_tables_report.plot(tmp_path)
     assert (tmp_path / "paper_tables.png").is_file()
 
 
@@ -266,7 +267,7 @@ def test_the_headline_puts_every_method_on_every_env_beside_the_exact_optimum(tm
         _run(tmp_path, "lqr_exp1", "td3bc", seed, {2000: t}, optimum=85.435)
     _run(tmp_path, "mountain_car", "wbrm", 0, {2000: 90.0}, lqr=False)
     _run(tmp_path, "mountain_car", "td3bc", 0, {2000: 95.0}, lqr=False)
-    text = paper_tables.tables(tmp_path)
+    text = paper_tables_report.tables(tmp_path)
     assert text.startswith("### Headline")
     head = text.split("\n\n")[1].splitlines()
     assert head[0] == "| algorithm | lqr_exp1 regret | mountain_car return |"
@@ -277,10 +278,10 @@ def test_the_headline_puts_every_method_on_every_env_beside_the_exact_optimum(tm
 
 
 def test_an_lqr_env_is_known_by_its_config_not_its_name():
-    assert paper_tables.is_lqr({"env": "my_system", "config": {"env": {"kind": "lqr"}}})
-    assert not paper_tables.is_lqr({"env": "lqr_like_name", "config": {"env": {"kind": "mountain_car"}}})
-    assert paper_tables.is_lqr({"env": "x", "final": {"optimal_return_exact": 1.0}})  # results without a config
-    lqr, other = paper_tables.split_envs([
+    assert paper_tables_report.is_lqr({"env": "my_system", "config": {"env": {"kind": "lqr"}}})
+    assert not paper_tables_report.is_lqr({"env": "lqr_like_name", "config": {"env": {"kind": "mountain_car"}}})
+    assert paper_tables_report.is_lqr({"env": "x", "final": {"optimal_return_exact": 1.0}})  # results without a config
+    lqr, other = paper_tables_report.split_envs([
         {"env": "lqr_nondiag", "config": {"env": {"kind": "lqr"}}}, {"env": "lqr_exp2", "config": {"env": {"kind": "lqr"}}},
         {"env": "mountain_car", "config": {"env": {"kind": "mountain_car"}}}])
     assert lqr == ["lqr_exp2", "lqr_nondiag"] and other == ["mountain_car"]
