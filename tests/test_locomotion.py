@@ -174,7 +174,10 @@ def test_a_run_killed_mid_segment_resumes_bit_identical_to_one_never_stopped(tmp
     with pytest.raises(KeyboardInterrupt):
         locomotion.train_locomotion_expert(cut, log=lambda line: None)
     monkeypatch.setattr(locomotion, "evaluate_policy", evaluate)
-    assert _state(cut.out)["frames"] == 50 and not (cut.out / "hopper-00000100.pt").exists()
+    half = _state(cut.out)
+    assert half["frames"] == 50 and not (cut.out / "hopper-00000100.pt").exists()
+    rows = half["buffer"]["observation"]  # the state holds the filled rows, not the whole buffer's capacity
+    assert len(rows) == 50 and rows.untyped_storage().nbytes() == rows.nbytes
     torch.manual_seed(12345)  # whatever the process did since: the state brings its own generators
     lines = []
     locomotion.train_locomotion_expert(cut, log=lines.append)

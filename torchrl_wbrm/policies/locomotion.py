@@ -340,7 +340,7 @@ def train_locomotion_expert(cfg: _TrainConfig, log=print) -> dict:
         snapshot = {"format": _STATE_FORMAT, "settings": _settings(cfg), "frames": frames, "log": entries,
                     "elapsed": elapsed + time.time() - start, "loss": loss.state_dict(), "optim": optim.state_dict(),
                     "torch_rng": torch.get_rng_state(), "numpy_rng": _numpy_rng_state(),
-                    "buffer": {key: rows.get(key) for key in rows.keys()}}
+                    "buffer": {key: rows.get(key).clone() for key in rows.keys()}}  # not the unfilled rows
         log(json.dumps(entry))
         written = time.time()
         _write_atomic(state_path, lambda f, snapshot=snapshot: torch.save(snapshot, f))
