@@ -35,7 +35,7 @@ from pathlib import Path
 
 SYSTEMS = ["lqr_exp1", "lqr_exp2", "lqr_exp3", "lqr_nondiag", "lqr_large_f"]
 DEFAULT = "default"
-#: The base this round of the study ran around (the recipe's defaults then, SiLU Q): every factor cell starts from
+#: The base the factor search ran around (SiLU Q): every factor cell starts from
 #: it, so its cells stay the ones that ran whatever the recipe's defaults become. The rule adopted GELU (below), the
 #: recipe's Q activation since; the "adopted" block runs the recipe as it is now.
 BASE = ["q.activation=SiLU"]
@@ -108,7 +108,7 @@ MOUNTAIN_CAR = {  # env=mountain_car's defaults keep SiLU Q (configs/env/mountai
     "wbrm, GELU Q": ["q.activation=GELU"],
     "td3bc, same budget, GELU Q": ["algo=td3bc", "q.activation=GELU"],
 }
-#: The recipe as it is now (no overrides: GELU Q since this round) and its unweighted comparator, 5 seeds on every
+#: The recipe as it is now (no overrides: GELU Q) and its unweighted comparator, 5 seeds on every
 #: system: the figures the goals are judged on.
 ADOPTED = {
     "the recipe's default now": [],
@@ -233,7 +233,7 @@ def select(records: list[dict], block: str) -> tuple[str, dict, dict]:
 
 def selection_verdict(chosen: str, intervals: dict) -> str:
     """The selection rule in words: a level is a candidate to replace the default only when its paired interval lies
-    below 0 (:func:`adopt` takes one candidate a round)."""
+    below 0 (:func:`adopt` takes one candidate per search)."""
     if _is_default(chosen):
         return f"{chosen}: keep"
     mean, half = intervals.get(chosen, (float("nan"), float("nan")))
@@ -260,8 +260,8 @@ def overview(records: list[dict], path: str, digits: int) -> str:
         cells = [ci_cell([r for r in recs if r["study"]["env"] == env], path, digits) for env in systems]
         lines.append(f"| {block} | {level} | {span} | " + " | ".join(cells) + " |")
 
-    row(DEFAULT, "the round's base (SiLU Q)", [r for r in defaults if r["seed"] < 3])
-    row(DEFAULT, "the round's base (SiLU Q)", defaults)
+    row(DEFAULT, "the factor search's base (SiLU Q)", [r for r in defaults if r["seed"] < 3])
+    row(DEFAULT, "the factor search's base (SiLU Q)", defaults)
     for level in ADOPTED:
         recs = [r for r in records if r["study"]["block"] == "adopted" and r["study"]["method"] == level]
         if recs:
@@ -275,12 +275,12 @@ def overview(records: list[dict], path: str, digits: int) -> str:
 
 
 def adopt(records: list[dict]) -> tuple[str, str, list[str]] | None:
-    """This round's one change to the defaults, by the held-out residual and the run time (no ground truth).
+    """The factor search's one change to the defaults, by the held-out residual and the run time (no ground truth).
 
     The candidates are the levels :func:`select` finds lower than the default beyond the noise (their paired
     log-ratio interval below 0), across blocks. The one with the lowest score is adopted, unless other candidates'
     intervals overlap its own: then the cheapest of those (mean ``wall_seconds`` of its runs) is, since the residual
-    cannot tell them apart. One change a round: the other levels were measured around the old default and are tried
+    cannot tell them apart. One change per search: the other levels were measured around the old default and are tried
     again around the new one. Returns ``(block, level, lines)`` (``lines``: each candidate in words), or ``None``.
     """
     import numpy as np
@@ -322,7 +322,7 @@ def tables(out: Path) -> str:
     parts = []
     defaults = [r for r in records if r["study"]["block"] == DEFAULT]
     if defaults:
-        parts.append("### The round's base (SiLU Q: the recipe's defaults before this round; 5 seeds)\n\n" + results_table(
+        parts.append("### The factor search's base (SiLU Q; 5 seeds)\n\n" + results_table(
             sorted(defaults, key=lambda r: SYSTEMS.index(r["study"]["env"])), ["=study.env"],
             {**metrics, "exact optimum": "final.optimal_return_exact", "return": "final.return"}))
     selections = ["| block | lowest held-out residual, and the rule's verdict | score of each level (geometric mean of "
@@ -341,7 +341,7 @@ def tables(out: Path) -> str:
     parts.append("### Selection (no ground truth)\n\n" + "\n".join(selections))
     adopted = adopt(records)
     if adopted is not None:
-        parts.append("### This round's change to the defaults\n\n" + "\n".join(f"- {line}" for line in adopted[2])
+        parts.append("### The factor search's change to the defaults\n\n" + "\n".join(f"- {line}" for line in adopted[2])
                      + f"\n\nAdopted: **{adopted[0]}: {adopted[1]}** (the lowest score, or the cheapest of the levels"
                        " whose intervals overlap the lowest's).")
     now = [r for r in records if r["study"]["block"] == "adopted"]
@@ -390,7 +390,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, exp1, ReLU vs SiLU, 1 seed")
     parser.add_argument("--blocks", nargs="+", default=[*BLOCKS, "adopted"],
-                        help=f"any of {[*BLOCKS, *OTHER_BLOCKS]} ({DEFAULT!r} alone: the round's "
+                        help=f"any of {[*BLOCKS, *OTHER_BLOCKS]} ({DEFAULT!r} alone: the factor search's "
                              "base only; 'adopted': the recipe as it is now and its unweighted comparator, 5 seeds)")
     parser.add_argument("--systems", nargs="+", default=SYSTEMS, help="systems of the defaults, ReLU and unweighted")
     parser.add_argument("--factor-systems", nargs="+", default=SYSTEMS,

@@ -158,7 +158,13 @@ def test_tests_cite_findings_where_they_are():
 
 
 def test_no_project_history_in_the_readme_or_the_docs():
-    """No commit hashes, dates, "round" or issue numbers: the README and the docs describe the project as it is."""
+    """No commit hashes, dates, "round" or issue numbers: the README and the docs describe the project as it is, and
+    no source file speaks of a development round."""
+    sources = [p for folder in ("torchrl_wbrm", "recipes", "tools", "benchmarks", "examples", "tests", "configs")
+               for p in (ROOT / folder).rglob("*.*") if p.suffix in (".py", ".yaml", ".md")]
+    for path in sources:
+        assert not re.search(r"\b(this|last|previous|next|a|one) round\b|\bround's\b|\bround \d", path.read_text(),
+                             re.I), path
     for path in [ROOT / "README.md", *DOCS.rglob("*.md")]:
         if "_build" in path.parts or "_autosummary" in path.parts:
             continue

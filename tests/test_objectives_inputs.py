@@ -202,7 +202,7 @@ def test_three_dimensional_exact_return_refusal_says_what_is_supported():
     assert math.isfinite(unclipped.optimal_return()) and unclipped.optimal_return() < 10 / (1 - 0.9)
 
 
-# ---------------------------------------------------------------------- inputs accepted or named (round 3)
+# ---------------------------------------------------------------------- inputs accepted or named
 def _typed_loss(**kwargs):
     from torchrl.data import Bounded
 

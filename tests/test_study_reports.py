@@ -393,7 +393,7 @@ def test_weighting_study_reports_a_regimes_only_run_without_a_figure(tmp_path):
     assert "### Regimes (LQR exp1)" in text and "-0.0100 [-0.0100, -0.0100] better" in text
 
 
-# ---------------------------------------------------------------------- q_accuracy_study: one change a round
+# ---------------------------------------------------------------------- q_accuracy_study: one change per search
 def _q_record(block, method, env, seed, residual, wall=30.0):
     return {"study": {"block": block, "env": env, "setting": block, "method": method}, "seed": seed,
             "final": {"held_out_bellman_residual": residual}, "wall_seconds": wall}

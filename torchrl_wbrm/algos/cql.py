@@ -32,21 +32,19 @@ class CQLConfig:
             setting closest to LQR and MountainCar. Why it is off here, readable from a run's own ``alpha_prime``
             and ``loss_cql`` logs without any ground truth: on the LQR data the gap stays below ``lagrange_thresh``
             from the first steps, so the constraint is slack and α' has no resting point above 0; it falls for as
-            long as the run lasts (LQR exp1, seed 0: α' 0.073 / 0.026 / 0.0074 after 1,000 / 2,000 / 4,000 steps),
-            the penalty fades and CQL drifts towards SAC, so its figures depend on the budget (regret 0.0315 /
-            0.0197 / 0.0099 over seeds 0-4, no plateau). With the fixed weight the objective is stationary and the
-            figures level off (README, "Budgets").
+            long as the run lasts, the penalty fades and CQL drifts towards SAC, so its figures depend on the
+            budget. With the fixed weight the objective is stationary and the figures level off
+            (:doc:`/results/paper_tables`).
         alpha_init: the initial entropy coefficient (tuned as in SAC).
         loss_function: the critics' loss.
         lr, actor_lr, alpha_lr, alpha_prime_lr, target_tau: Adam's rates for the critics, the actor, the entropy
             coefficient and α' (with ``with_lagrange``), and SoftUpdate's τ (they replace ``q.lr``, ``q.actor_lr``
             and ``q.target_tau`` for this algo). Default the project's 1e-3 and τ = 0.05 for the networks, not the
             paper's and d3rlpy's 3e-4, 1e-4 and 0.005: those are set for 10⁶ updates, and at this project's budgets
-            they leave CQL far from converged (LQR exp1, 500 updates: regret 3.17 against 0.10; README, "Against a
-            peer library"). The two multipliers get 1e-2: each is one scalar whose Adam step is about its learning
-            rate, so over a cosine-annealed run of n steps log α and log α' can move by about n·lr/2; at 1e-3 and
-            2,000 steps that is ~1, too little for either to reach where its own update leads it (with the
-            Lagrangian on LQR exp1, α' fell only from 1 to 0.43 in 2,000 steps).
+            they leave CQL far from converged (:doc:`/results/peer_d3rlpy`). The two multipliers get 1e-2: each is
+            one scalar whose Adam step is about its learning rate, so over a cosine-annealed run of n steps log α
+            and log α' can move by about n·lr/2; at 1e-3 and 2,000 steps that is ~1, too little for either to reach
+            where its own update leads it.
     """
 
     min_q_weight: float = 5.0

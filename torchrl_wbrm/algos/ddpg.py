@@ -27,9 +27,8 @@ def build_ddpg(ctx: AlgoContext) -> Algo:
 
     Where the task's default puts a LayerNorm in Q (Minari datasets with a continuous action), DDPG's critic gets it
     too (:attr:`~torchrl_wbrm.algos.AlgoSpec.critic_layer_norm`): offline, nothing else bounds Q at the actions μ
-    picks off the data. On the benchmark's small Pendulum datasets at 10× the budget, without it Q̂'s mean over D
-    reached 10–632 times r_max / (1 − γ) on four seeds of five (``q_blow_up``); with it 0.002–0.21 times, and DDPG
-    scored 101.4 normalised against −17.7 (5 seeds; the benchmark page's budget check has every task).
+    picks off the data; without it Q̂ grows past r_max / (1 − γ) (flagged ``q_blow_up``;
+    :doc:`/results/benchmark`).
     """
     qc = ctx.cfg.q
     actor = deterministic_actor(ctx)

@@ -24,9 +24,7 @@ class IQLConfig:
 
     Q and V start with the output bias every critic of the project gets, mean(r) / (1 − γ) (``q.init_bias``; the
     paper and d3rlpy start at 0). Where D's episodes end early that start is far above the value of the rows that
-    end them. On InvertedPendulum-v5's few-demonstration cell (docs/results/peer_d3rlpy.md, 9,000 updates, seeds
-    0-4) this IQL scored 64.4 ± 44.8 normalised with it and 100.0 on every seed without it (``q.init_bias=false``),
-    d3rlpy's 100.0; on Pendulum-v1, whose episodes never end early, 94.7 ± 4.7 with it and 66.3 ± 5.3 without.
+    end them: ``q.init_bias=false`` is then the closer match to d3rlpy (:doc:`/results/peer_d3rlpy`).
 
     Attributes:
         expectile: the value's expectile τ, in (0, 1).
@@ -36,28 +34,18 @@ class IQLConfig:
         min_log_std, max_log_std: the clamp of the policy's state-independent log standard deviation (d3rlpy's
             −5 and 2).
         init_log_std: the log standard deviation's initial value (the paper's 0). d3rlpy parameterises it as
-            ``min + (max − min) · sigmoid(p)`` with ``p`` starting at 0, so its σ starts at exp(−1.5). Set to −1.5,
-            on the few-demonstration cells of docs/results/peer_d3rlpy.md it scored +0.9 ± 0.8 (Pendulum-v1)
-            and +0.4 ± 12.6 (LunarLanderContinuous-v3) normalised, paired over 5 seeds: not the gap to d3rlpy.
+            ``min + (max − min) · sigmoid(p)`` with ``p`` starting at 0, so its σ starts at exp(−1.5).
         lr, actor_lr, target_tau: Adam's rates for Q and V, and for the actor, and SoftUpdate's τ (they replace
             ``q.lr``, ``q.actor_lr`` and ``q.target_tau`` for this algo). The rates default to the project's 1e-3,
-            not the paper's 3e-4, which is set for 10⁶ updates (LQR exp1, 1,000 updates: regret 0.18 against
-            0.029). τ defaults to the paper's and d3rlpy's 0.005, not the project's 0.05. IQL chains its value
-            targets: V ← expectile of the target Q ← r + γ V. A fast target (τ = 0.05) likely lets that chain
-            inflate the advantages of D's random actions, and the actor then clones them. Measured on Pendulum-v1
-            (3 expert episodes drawn by each seed, D 10% the expert's; 3,000 updates, seeds 0-4), as a normalised
-            score: 89.8 at 0.005 against 76.0 at 0.01 (d3rlpy: 95.2); on
-            LunarLanderContinuous-v3, the same cell, 25.5 against 37.5, inside the seeds' interval (d3rlpy: 11.4);
-            on LQR exp1 at 3,000 updates the regret is the same at 0.05, 0.01 and 0.005 (0.0296, 0.0291, 0.0288;
-            docs/results/peer_d3rlpy.md). At 1,000 updates 0.005 is too slow for LQR exp1's regret bar of
-            ``tests/test_baselines.py`` (0.046 against 0.042), which the test's IQL run therefore gets 1,500.
+            not the paper's 3e-4, which is set for 10⁶ updates. τ defaults to the paper's and d3rlpy's 0.005, not
+            the project's 0.05: IQL chains its value targets (V ← expectile of the target Q ← r + γ V), and a fast
+            target lets that chain inflate the advantages of D's random actions, which the actor then clones
+            (:doc:`/results/peer_d3rlpy`).
         critic_first: step Q and V on the batch first, then the actor with the updated V (d3rlpy's order). Off: the
             three losses are computed on the batch and stepped at once (torchrl's sota-implementations).
         unit_action_input: Q reads the unit action ``(a − c) / h`` itself (d3rlpy's and the paper's units: D4RL's
             boxes are ``[−1, 1]ᵐ``). Off: Q reads the env's box action, as every critic of this project does (the same
-            function class; only the first layer's input is rescaled). On the Pendulum-v1 few-demonstration cell (5
-            seeds, docs/results/peer_d3rlpy.md) ``unit_action_input`` gained 1.8 ± 1.2 normalised, and with
-            ``critic_first`` and ``init_log_std=-1.5`` as well 2.3 ± 1.4; d3rlpy's IQL stayed 3.1 ± 0.8 higher.
+            function class; only the first layer's input is rescaled).
     """
 
     expectile: float = 0.7

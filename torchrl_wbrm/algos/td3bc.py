@@ -26,8 +26,7 @@ class TD3BCConfig:
         loss_function: the critic's loss (``"l2"``, ``"l1"``, ``"smooth_l1"``).
         lr, actor_lr, target_tau: the critics' and the actor's Adam rates and SoftUpdate's τ (they replace
             ``q.lr``, ``q.actor_lr`` and ``q.target_tau`` for this algo). Default the project's 1e-3 and τ = 0.05,
-            not the paper's 3e-4 and 0.005, which are set for 10⁶ updates (LQR exp1, 1,000 updates: regret 0.27
-            against 0.028; README, "Against a peer library").
+            not the paper's 3e-4 and 0.005, which are set for 10⁶ updates (:doc:`/results/peer_d3rlpy`).
     """
 
     alpha: float = 2.5

@@ -3,8 +3,8 @@
 TorchRL's losses hold each network as a parameter-less ("meta") module plus a ``TensorDictParams``, and call it as
 ``with params.to_module(net): net(TensorDict(...))``. Per call that costs a TensorDict build, the ``to_module`` swap
 and the ``TensorDictModule`` output path (in tensordict 0.14 ``TensorDict.from_any`` runs an
-``importlib.util.find_spec("pandas")`` on every output); on the project's 2×256 networks at batch 256 it was a third
-of a critic step. :class:`NetworkCall` is the one way the losses call a network: for a plain
+``importlib.util.find_spec("pandas")`` on every output), a large share of a step on small networks
+(:doc:`/performance`). :class:`NetworkCall` is the one way the losses call a network: for a plain
 :class:`~tensordict.nn.TensorDictModule` (``ValueOperator``, a non-``safe`` ``Actor``, ``DensityRatioNetwork``: one
 output key, no ``method``, no keyword inputs, no hooks on the wrapper) it puts the same parameter tensors in the same
 module slots with plain dictionary assignments and calls ``net.module`` on the input tensors, so the result, its

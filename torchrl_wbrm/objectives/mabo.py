@@ -84,8 +84,8 @@ class MABOLoss(WeightedBellmanLoss):
       (``"mean"``); ``"loss_critic"`` uses a detached ``δ`` and trains the adversary. Summing all ``loss_*`` entries
       and calling ``backward`` once is therefore simultaneous gradient descent–ascent; alternating updates (a critic
       step, then a Q step on a fresh forward) work too. The descent–ascent dynamics of the ``|·|`` game cycle
-      without help: on the tabular chain MDP of the tests, ``critic_l2 = 0`` ended 0.6–1.0 away from Q* (3 seeds),
-      while ``critic_l2 = 1`` with a critic learning rate 30× Q's reached it within 2e-3.
+      without help: ``critic_l2 > 0`` and a critic learning rate above Q's damp them (``tests/test_mabo.py`` reaches
+      Q* on a tabular chain MDP that way).
     - **Bootstrapping** (``delay_value``): ``False`` (default) is the paper's estimator, in which the same Q appears
       in ``Q(x, a)`` and ``max_{a'} Q(x', a')`` and the gradient flows through both. ``True`` evaluates the max with
       a frozen target copy of Q (updated outside the loss by :class:`~torchrl.objectives.SoftUpdate` /

@@ -62,8 +62,8 @@ class RatioConfig:
         non_negative_correction: D3RE's C (``None``: off).
         relative_beta: β of the relative ratio p_e / (β p_e + (1 − β) p_b) (0: the plain ratio).
         self_normalise: divide the stored weights by their mean over D, so that they average 1.
-        temper: λ in ŵ^λ (1: off). Default 0.25: of the tempers ``recipes/weighting_study.py`` compared, the one
-            with the lowest held-out Bellman residual.
+        temper: λ in ŵ^λ (1: off). Default 0.25, the temper with the lowest held-out Bellman residual
+            (:doc:`/results/weighting_study`).
         clip: upper clip of the stored weights (``None``: off).
         mix: ε in (1 − ε) ŵ + ε (0: off).
         aggregate: the weight each transition of D gets from ŵ: ``"transition"`` (ŵ at its own state-action) or
@@ -112,80 +112,58 @@ class QConfig:
             (gradients through both Q terms).
         maximiser: ``"actor"`` (max ≈ Q(x', μ(x'))) or ``"sampled"`` (uniform candidates plus μ(x')).
         num_action_samples: candidates for ``"sampled"``.
-        gamma: discount (null: the env's; 0.9 for LQR, 0.9999 for MountainCar, 0.99 for Minari datasets).
+        gamma: discount (null: the env's, :attr:`~torchrl_wbrm.tasks.Task.default_gamma`).
         num_cells, actor_num_cells: hidden widths of Q and of the actor (their number is the depth). Every algo's
             critics and actors use them.
         activation, actor_activation: hidden activations of Q (and of every critic/value network) and of the actor,
-            the name of any :mod:`torch.nn` activation (Q's: null, the env's). Q's default is GELU, a smooth activation: Q* of the LQR task is
-            a quadratic and the actor follows ∂Q/∂a, which a piecewise-linear ReLU network fits poorly. SiLU replaced
-            ReLU first; ``recipes/q_accuracy_study.py`` then found GELU's held-out Bellman residual lower than
-            SiLU's beyond the noise on five LQR systems, and its rule adopted it.
+            the name of any :mod:`torch.nn` activation (Q's: null, the env's). Q's default is GELU, a smooth
+            activation: the actor follows ∂Q/∂a, which a piecewise-linear ReLU network fits poorly; among smooth ones,
+            the one with the lowest held-out Bellman residual (:doc:`/results/q_accuracy_study`).
         layer_norm, actor_layer_norm: a LayerNorm after each hidden layer of Q (and of every critic/value network)
-            / of the actor. ``layer_norm`` null: the env's, on for Minari datasets with a continuous action (it
-            holds Q's residual and the return as the budget grows on the benchmark's tasks), off for a discrete action, for
-            LQR and MountainCar, and for the algos without a Bellman residual but DDPG (TD3+BC, IQL, CQL, ...).
+            / of the actor. ``layer_norm`` null: the env's (:class:`~torchrl_wbrm.tasks.TrainingDefaults`).
         ensemble_size: independently initialised Q networks whose outputs are reduced by ``ensemble_reduction``
             (``"mean"`` or ``"min"``); the reduced value is Q everywhere (data term, target and actor).
         value_scale: Q = value_scale · MLP (reward/target scaling: the network works in units of value_scale).
         normalise_observations: feed every network ``(x − mean) / std`` of D's observations (a fixed input layer;
             null: the env's, on except for LQR, whose states are standardised already).
-        lr_schedule: ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser; the default: on
-            LQR exp1 it cut the paired regret from 0.0075 to 0.0034 and lowered the held-out Bellman residual,
-            ``recipes/q_accuracy_study.py``) or ``"constant"``.
-        steps, batch_size, lr, actor_lr: the optimisers' budget (Adam; ``steps`` null: the env's, 3000, 4000 for
-            MountainCar, 9000 for Minari datasets with a continuous action).
+        lr_schedule: ``"cosine"`` (torch's ``CosineAnnealingLR`` over ``steps``, every optimiser; the default,
+            :doc:`/results/q_accuracy_study`) or ``"constant"``.
+        steps, batch_size, lr, actor_lr: the optimisers' budget (Adam; ``steps`` null: the env's).
         target_tau: SoftUpdate's τ.
         actor_delay: actor (and target) updates every this many critic steps (TD3's policy delay).
         weight_actor_loss: weight the actor's objective by ŵ too.
-        bc_alpha: α of a TD3+BC behaviour-cloning term toward D's actions (null: the env's, off except
-            MountainCar's 10; 0: off; the paper has none).
-        expert_bc_alpha: α of the actor's cloning of S^e's expert actions,
+        bc_alpha: α of a TD3+BC behaviour-cloning term toward D's actions (null: the env's; 0: off).
+        expert_bc_alpha: α of the actor's cloning of S^e's actions,
             ``λ·(−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x) − a)/h‖²/m``, λ = α / mean|Q| (``wbrm`` and ``brm`` with a
-            continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's, 1.0 (0 for
-            MountainCar, which clones D); 0: off (the paper's actor, which only maximises Q). Setting one of
-            ``bc_alpha`` and ``expert_bc_alpha`` turns the other off unless it is set too (both on is refused).
-        expert_bc_weighted_d: add to that cloning term the ŵ-weighted cloning of the actor step's D batch,
-            ``Σ_b w_b ‖(μ(x_b) − a_b)/h‖²/m / Σ_b w_b`` with ``w_b`` the row's stored weight (``"density_ratio"``,
-            after ``ratio.temper``, ``ratio.clip``, ``ratio.aggregate`` and the self-normalisation), self-normalised
-            over the batch: μ clones S^e and the rows of D that ŵ calls expert-like. Needs ``expert_bc_alpha`` > 0
-            (``wbrm`` and ``brm``, a continuous action). Where there is no ŵ (``algo=brm``, ``ratio.source=none``)
-            every stored weight is 1: the term is the plain cloning of D's actions, the ŵ ≡ 1 control.
-        expert_bc_from_d: the cloning term's expert set is S^e together with D's expert-like episodes: the episodes
-            whose geometric mean of the raw stage-1 ŵ, self-normalised over D, is above 1 (the episode's
-            state-actions are more likely under the expert's distribution than under D's;
-            :func:`~torchrl_wbrm.ratio.expert_like_episodes`), cloned as S^e is. Reads ŵ before ``ratio.temper``,
-            ``ratio.clip`` and ``ratio.aggregate``, which shape only the residual's weights. Needs
-            ``expert_bc_alpha`` > 0 and D's episode ids. Where there is no ŵ (``algo=brm``,
-            ``ratio.source=none``) every episode's mean is 1 and none is added: the ŵ ≡ 1 control clones S^e.
+            continuous action; :class:`~torchrl_wbrm.algos.base.ExpertCloning`). Null: the env's; 0: off (the
+            paper's actor). Setting one of ``bc_alpha`` and ``expert_bc_alpha`` turns the other off unless it is set
+            too (both on is refused).
+        expert_bc_weighted_d: that cloning term also clones the actor step's D batch weighted by each row's stored
+            weight (``"density_ratio"``, shaped as the residual's), self-normalised over the batch. Needs
+            ``expert_bc_alpha`` > 0; where there is no ŵ every weight is 1 (the plain cloning of D, the control).
+        expert_bc_from_d: that cloning term's expert set is S^e with D's expert-like episodes
+            (:func:`~torchrl_wbrm.ratio.expert_like_episodes`: the geometric mean of the raw ŵ over the episode,
+            self-normalised over D, above 1). Needs ``expert_bc_alpha`` > 0 and D's episode ids; where there is no
+            ŵ no episode is added.
         grad_clip: max gradient norm (``None``: off).
         holdout_fraction: share of D's episodes held out to score the Bellman residual on unseen behaviour data
             (a criterion a user without ground truth can compute).
         init_bias: start Q's output bias at mean(r) / (1 − γ) (otherwise the offset takes thousands of steps).
         eval_every: steps between evaluations (null: the env's).
-        select: which stage-2 parameters the run delivers and scores at the end (null: the env's,
-            ``"held_out_weighted_residual"`` for Minari datasets with a continuous action, ``"last"`` for a discrete
-            one, for LQR and MountainCar and for every algo without a Bellman residual). ``"last"``: those of the
-            last step. ``"held_out_residual"``: those of the evaluation (every ``eval_every`` steps, the last step
-            included) whose unweighted Bellman residual on the held-out D episodes
-            (``"held_out_bellman_residual"``, ``holdout_fraction``) is lowest: early stopping on data the run did not
-            train on, as stage 1 keeps its best held-out state. ``"held_out_weighted_residual"``: the same with
-            each held-out row's δ² weighted by its ŵ, shaped as D's rows are (``"held_out_weighted_residual"``, the
-            mean ŵ δ² stage 2 minimises; with ŵ ≡ 1 the unweighted one). ``"expert_like_action"``: those of the
-            evaluation whose actor acts most like D's expert-like episodes (those the raw ŵ calls the expert's,
-            :func:`~torchrl_wbrm.ratio.expert_like_episodes`), by its cloning error on their rows,
-            ``‖(μ(x_t) − a_t) / h‖² / m`` as the actor's cloning term measures it (``"expert_like_action_error"``):
-            early stopping of the policy on expert data that stage 1 found in D and the actor does not clone (it
-            does with ``expert_bc_from_d``). ``"expert_like_return"``: those of the evaluation whose Q is closest
-            to the discounted returns of the same episodes: the mean of ``(Q(x_t, a_t) − G_t)²`` over their rows
-            (``"expert_like_return_error"``), ``G_t`` the episode's own discounted return from ``t``, bootstrapped
-            at its end by the Bellman target
-            (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`). It measures whether Q has carried
-            the rewards back along the episodes the expert would have taken, which a one-step residual barely sees
-            before Q has learned; it needs each episode's rows in time order. Both need D's episode ids; where ŵ
-            calls no episode expert-like (ŵ ≡ 1: every algo but ``wbrm``, and ``ratio.source=none``) both select by
-            ``held_out_weighted_residual`` instead, and ``results.json``'s ``"selection"`` names the figure used.
+        select: which stage-2 parameters the run delivers and scores at the end (null: the env's). ``"last"``:
+            those of the last step. The others keep the evaluation (every ``eval_every`` steps, the last included)
+            with the lowest figure, one selector each (:mod:`torchrl_wbrm.training.selection`):
+            ``"held_out_residual"``, the unweighted Bellman residual on the held-out D episodes
+            (``holdout_fraction``); ``"held_out_weighted_residual"``, the same with each row's δ² weighted by its ŵ
+            as D's rows are; ``"expert_like_action"``, the actor's cloning error on D's expert-like episodes
+            (:func:`~torchrl_wbrm.ratio.expert_like_episodes`); ``"expert_like_return"``, the mean of
+            ``(Q(x_t, a_t) − G_t)²`` over their rows, ``G_t`` the episode's discounted return from ``t``
+            bootstrapped at its end (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`; rows in time
+            order). Both expert-like choices need D's episode ids, and where ŵ calls no episode expert-like they
+            select by ``held_out_weighted_residual`` (``results.json``'s ``"selection"`` names the figure used).
             Needs an algo with a Bellman residual (wbrm, brm, fqi, mabo). The final record names the step chosen
-            (``"selected_step"``); a resume with a larger ``steps`` continues from the last step's parameters.
+            (``"selected_step"``); a resume with a larger ``steps`` continues from the last step's parameters
+            (:doc:`/results/selection`).
     """
 
     residual: str = "squared"
