@@ -56,7 +56,7 @@ def offline_value_of_run(run_dir, *, steps: int | None = None) -> tuple[dict, di
     _plain(record)
     record.pop("seeds", None)
     cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(WBRMConfig), record))
-    trainer = WBRMTrainer(cfg, run_dir, resume=True, logger=None, progress=False)
+    trainer = WBRMTrainer(cfg, run_dir, resume=True, logger=None, progress=False, evaluation=False)
     try:
         evaluations = [r for r in trainer.history if r["stage"] == "q"]
         delivered = evaluations[-1].get("selected_step", trainer.state["step"]) if evaluations else None
@@ -89,7 +89,8 @@ def main(argv: list[str] | None = None) -> None:
         if key in figures:
             print(f"{name}: {figures[key]:.4f} ± {figures[f'{key}_ci']:.4f}   "
                   f"(95% CI [{figures[f'{key}_low']:.4f}, {figures[f'{key}_high']:.4f}], over D's episodes)")
-    print("The environment was not run for this estimate: it reads the run's checkpoint and its data D only.")
+    print("The environment was not run for this estimate: no evaluation env was built and no episode of the policy was "
+          "run; it reads the run's checkpoint and its data D only.")
 
 
 if __name__ == "__main__":

@@ -74,7 +74,7 @@ def _value(trainer, steps: int, seed: int) -> dict:
     from torchrl_wbrm.training.offline_value import offline_value_figures
 
     with torch.random.fork_rng():
-        figures, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.evaluator.return_quantity(),
+        figures, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.task.return_quantity(),
                                            weights=trainer.q_train_weights, steps=steps, seed=seed)
     return {k: figures[k] for k in ("offline_value", "offline_value_weighted") if k in figures}
 

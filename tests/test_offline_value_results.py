@@ -88,7 +88,7 @@ def test_ratio_weighted_fqe_reads_the_unshaped_ratio(tmp_path):
     assert results["final"]["offline_value"] == shaped_results["final"]["offline_value"]  # the unweighted one
     assert results["final"]["offline_value_weighted"] != shaped_results["final"]["offline_value_weighted"]
     w = compute_density_ratio(trainer.ratio_network, trainer.q_train_data).reshape(-1, 1).double()
-    expected, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.evaluator.return_quantity(),
+    expected, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.task.return_quantity(),
                                         weights=(w / w.mean()).float(), steps=50, seed=0)
     assert results["final"]["offline_value_weighted"] == pytest.approx(expected["offline_value_weighted"], rel=1e-6)
 
@@ -96,3 +96,35 @@ def test_ratio_weighted_fqe_reads_the_unshaped_ratio(tmp_path):
 def test_the_weighting_of_the_offline_value_is_a_choice():
     with pytest.raises(ValueError, match=r"eval.offline_value_weights='raw' is not allowed: choose one of"):
         WBRMTrainer(tiny_lqr_config(eval={"offline_value_weights": "raw"}), progress=False)
+
+
+def test_the_command_builds_no_evaluator(tmp_path, monkeypatch):
+    """The run-directory estimate needs the run's checkpoint and D only: no evaluation env or simulation is built
+    (the task states the quantity without one), and a trainer built so refuses to run."""
+    import importlib.util
+
+    from tests.references import ROOT
+    from torchrl_wbrm.tasks.lqr import LQRTask
+
+    run_dir = tmp_path / "run"
+    WBRMTrainer(tiny_lqr_config(eval={"offline_value": True, "offline_value_steps": 50}), run_dir,
+                progress=False).run()
+    saved = json.loads((run_dir / "results.json").read_text())["final"]
+
+    def no_evaluator(self, eval_cfg):
+        raise AssertionError("an evaluator was built")
+
+    monkeypatch.setattr(LQRTask, "evaluator", no_evaluator)
+    spec = importlib.util.spec_from_file_location("offline_value_recipe", ROOT / "recipes" / "offline_value.py")
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    figures, record, run = recipe.offline_value_of_run(run_dir)
+    assert figures["offline_value"] == saved["offline_value"] and record["uses_environment"] is False
+    trainer = WBRMTrainer(tiny_lqr_config(), run_dir, resume=True, logger=None, progress=False, evaluation=False)
+    try:
+        with pytest.raises(ValueError, match="built with evaluation=False"):
+            trainer.run()
+    finally:
+        trainer.release()
+    with pytest.raises(ValueError, match="ratio.source=exact reads the evaluator's exact ratio"):
+        WBRMTrainer(tiny_lqr_config(ratio={"source": "exact"}), tmp_path / "exact", progress=False, evaluation=False)

@@ -92,11 +92,6 @@ class Evaluator(ABC):
         """Flat dict of floats: ``return`` (with ``_ci``, ``_stderr``) and whatever else the env can score."""
         raise NotImplementedError
 
-    def return_quantity(self) -> tuple[float, int] | None:
-        """``(γ, H)``: the online ``return`` is the γ-discounted return of an episode of at most H steps (γ = 1:
-        undiscounted), the quantity an offline estimate must match; ``None`` where the evaluator does not say."""
-        return None
-
 
 class Task(ABC):
     """One environment kind (``env.kind``): its data, its action box, γ, its evaluator and its ground truth.
@@ -174,6 +169,12 @@ class Task(ABC):
     def action_spec(self) -> Bounded:
         """The action box the actors are bounded to."""
         raise NotImplementedError
+
+    def return_quantity(self) -> tuple[float, int] | None:
+        """``(γ, H)``: the evaluator's online ``return`` is the γ-discounted return of an episode of at most H steps
+        (γ = 1: undiscounted), the quantity an offline estimate must match; ``None`` where the task does not say.
+        Known without building the evaluator (no environment): an offline estimate needs no env."""
+        return None
 
     def gamma(self, override: float | None = None) -> float:
         """``override`` (``q.gamma``) or the env's own discount."""

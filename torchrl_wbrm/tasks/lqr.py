@@ -102,6 +102,9 @@ class LQRTask(Task):
     def evaluator(self, eval_cfg) -> "LQREvaluator":
         return LQREvaluator(self, eval_cfg)
 
+    def return_quantity(self) -> tuple[float, int]:
+        return self.lqr_config.gamma, self.lqr_config.horizon  # lqr_paired_regret's discounted return
+
     def minari_env_kwargs(self, behaviour) -> dict:  # not a gymnasium env: its spaces only
         import numpy as np
         from gymnasium import spaces
@@ -135,9 +138,6 @@ class LQREvaluator(Evaluator):
                 "observation", "action"
             )
         self.true_ratio = lqr_true_density_ratio(env, expert, behaviour, behaviour_initial_std=start)
-
-    def return_quantity(self) -> tuple[float, int]:
-        return self.task.lqr_config.gamma, self.task.lqr_config.horizon  # lqr_paired_regret's discounted return
 
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         out: dict = {}

@@ -81,6 +81,10 @@ class MinariTask(Task):
     def evaluator(self, eval_cfg) -> "MinariEvaluator":
         return MinariEvaluator(self.datasets.metadata)
 
+    def return_quantity(self) -> tuple[float, int]:
+        """The evaluator's undiscounted return over the datasets' episode limit (needs the datasets attached)."""
+        return 1.0, self.datasets.metadata.get("max_episode_steps") or 1000
+
 
 class MinariEvaluator(Evaluator):
     """The mean undiscounted return over episodes of the datasets' gymnasium env, all at once in a vector env of as
@@ -99,9 +103,6 @@ class MinariEvaluator(Evaluator):
         if episodes not in self._batched:
             self._batched[episodes] = make_minari_eval_env(self.metadata, num_envs=episodes)
         return self._batched[episodes]
-
-    def return_quantity(self) -> tuple[float, int]:
-        return 1.0, self.metadata.get("max_episode_steps") or 1000  # evaluate's undiscounted return
 
     def evaluate(self, policy, *, episodes: int, seed: int, q_value=None, device=None) -> dict:
         meta = self.metadata

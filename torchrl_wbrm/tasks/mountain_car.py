@@ -61,6 +61,9 @@ class MountainCarTask(Task):
     def evaluator(self, eval_cfg) -> "MountainCarEvaluator":
         return MountainCarEvaluator()
 
+    def return_quantity(self) -> tuple[float, int]:
+        return 1.0, 1000  # the evaluator's evaluate_returns defaults: undiscounted, at most 1000 steps
+
     def minari_env_kwargs(self, behaviour) -> dict:
         return {"env": GYM_ID, "eval_env": GYM_ID}
 
@@ -78,6 +81,3 @@ class MountainCarEvaluator(Evaluator):
             self.envs[episodes] = make_mountain_car_env(batch_size=[episodes])
         res = evaluate_returns(self.envs[episodes], policy, episodes=episodes, seed=seed)
         return {"return": res.mean, "return_ci": res.half_width, "return_stderr": res.stderr}
-
-    def return_quantity(self) -> tuple[float, int]:
-        return 1.0, 1000  # evaluate_returns' defaults: undiscounted, at most 1000 steps

@@ -2,7 +2,7 @@ r"""The delivered policy's value from the run's data alone (``eval.offline_value
 the environment, beside the online figure in ``results.json``.
 
 The quantity is the online evaluation's own (the evaluator's
-:meth:`~torchrl_wbrm.data.tasks.base.Evaluator.return_quantity`): the γ-discounted return of an episode of at most H
+:meth:`~torchrl_wbrm.tasks.Task.return_quantity`): the γ-discounted return of an episode of at most H
 steps, from D's initial states with the policy acting deterministically. On LQR that is the discounted return (its γ, over its horizon of H steps); on Minari and
 MountainCar the undiscounted return over the env's episode limit. D here is the trainer's behaviour data, its
 training episodes (the held-out ones are not used); the estimate averages over their initial states, while the
