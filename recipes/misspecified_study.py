@@ -46,7 +46,8 @@ def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int, classes=CLASS
 
     from torchrl_wbrm.data.lqr import LQRDataConfig, make_lqr_datasets
     from torchrl_wbrm.envs import LQREnv
-    from torchrl_wbrm.evaluation import effective_sample_size, lqr_paired_regret, q_error
+    from torchrl_wbrm.evaluation import lqr_paired_regret, q_error
+    from torchrl_wbrm.objectives.functional import effective_sample_size
     from torchrl_wbrm.ope.linear_fqe import GreedyQuadraticPolicy, LinearQ, least_squares_fqe
     from torchrl_wbrm.evaluation.lqr_policy_value import linear_policy_q, linear_policy_value
     from torchrl_wbrm.ope.offline_value import fit_fqe, value_at
@@ -88,7 +89,7 @@ def run_seed(seed: int, start_std, *, quick: bool, mlp_steps: int, classes=CLASS
         for name, w in weights.items():
             t0 = time.perf_counter()
             row = {"seed": seed, "class": cls, "weighting": name,
-                   "ess_fraction": 1.0 if w is None else effective_sample_size(w) / w.numel()}
+                   "ess_fraction": 1.0 if w is None else effective_sample_size(w).item() / w.numel()}
             if cls.startswith("poly"):
                 degree = int(cls[-1])
                 features = PolynomialFeatures(degree)

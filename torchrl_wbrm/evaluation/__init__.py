@@ -2,7 +2,6 @@
 from torchrl_wbrm.evaluation.metrics import (
     FiniteHorizonLQRPolicy,
     discounted_returns,
-    effective_sample_size,
     evaluate_returns,
     lqr_paired_regret,
     q_error,
@@ -15,7 +14,6 @@ __all__ = [
     "MeanCI",
     "bootstrap_ci",
     "discounted_returns",
-    "effective_sample_size",
     "evaluate_returns",
     "lqr_paired_regret",
     "mean_ci",

@@ -15,6 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_wbrm._devices import device_of
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.evaluation.stats import MeanCI, mean_ci
+from torchrl_wbrm.objectives.functional import effective_sample_size
 
 __all__ = [
     "FiniteHorizonLQRPolicy",
@@ -23,7 +24,6 @@ __all__ = [
     "lqr_paired_regret",
     "q_error",
     "ratio_error",
-    "effective_sample_size",
 ]
 
 
@@ -141,12 +141,6 @@ def q_error(q_estimate: torch.Tensor, q_true: torch.Tensor) -> dict[str, float]:
     }
 
 
-def effective_sample_size(weights: torch.Tensor) -> float:
-    """Kish's effective sample size ``(sum w)^2 / sum w^2``."""
-    w = weights.double().reshape(-1)
-    return (w.sum() ** 2 / w.pow(2).sum()).item()
-
-
 @torch.no_grad()
 def ratio_error(w_estimate: torch.Tensor, w_true: torch.Tensor | None = None) -> dict[str, float]:
     """Diagnostics of estimated ratios on behaviour samples, and their error when the true ratio is known.
@@ -157,12 +151,12 @@ def ratio_error(w_estimate: torch.Tensor, w_true: torch.Tensor | None = None) ->
     w_hat = w_estimate.double().reshape(-1)
     out = {
         "mean_behaviour": w_hat.mean().item(),
-        "ess": effective_sample_size(w_hat),
-        "ess_fraction": effective_sample_size(w_hat) / w_hat.numel(),
+        "ess": effective_sample_size(w_hat).item(),
+        "ess_fraction": effective_sample_size(w_hat).item() / w_hat.numel(),
         "max": w_hat.max().item(),
     }
     if w_true is not None:
         w = w_true.double().reshape(-1)
         out["relative_l2"] = ((w_hat - w).pow(2).mean().sqrt() / w.pow(2).mean().sqrt()).item()
-        out["true_ess"] = effective_sample_size(w)
+        out["true_ess"] = effective_sample_size(w).item()
     return out

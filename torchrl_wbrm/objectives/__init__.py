@@ -8,11 +8,12 @@ from torchrl_wbrm.objectives.functional import (
     RESIDUALS,
     average_bellman_residual,
     basu_power_divergence,
+    linear_adversary_weight,
     power_divergence_integrands,
     weighted_bellman_residual,
 )
 from torchrl_wbrm.objectives.fqe import FQELoss
-from torchrl_wbrm.objectives.mabo import ADVERSARIES, MABOLoss, linear_adversary_weight
+from torchrl_wbrm.objectives.mabo import ADVERSARIES, MABOLoss
 from torchrl_wbrm.objectives.robust_density_ratio import RobustDensityRatioLoss
 from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss
 from torchrl_wbrm.objectives.weighted_loss import NATIVE_PRIORITY_WEIGHT_LOSSES, WeightedLoss, reads_priority_weight

@@ -3,15 +3,18 @@ r"""The equations of WBRM's losses, each implemented once, on tensors (as :mod:`
 Every loss of :mod:`torchrl_wbrm.objectives` and every algorithm of :mod:`torchrl_wbrm.algos` computes these
 quantities by calling the functions below, and nothing else computes them:
 
-- stage 1, the density ratio: :func:`power_divergence_integrands` and :func:`basu_power_divergence`;
+- stage 1, the density ratio: :func:`power_divergence_integrands`, :func:`basu_power_divergence` and the
+  normalisation penalty :func:`normalisation_penalty`;
 - stage 2, the Bellman residual: :func:`bellman_target`, :func:`bellman_residual`, :func:`weighted_bellman_residual`
-  (its two forms) and MABO's :func:`average_bellman_residual`;
+  (its two forms), MABO's :func:`average_bellman_residual` and its linear adversary's closed form
+  :func:`linear_adversary_weight`;
 - the actor: :func:`td3bc_lambda`, TD3+BC's normalisation of the Q term, and :func:`action_cloning`, its cloning
   term (plain, or weighted and self-normalised over the batch);
 - Q's blow-up bound: :func:`q_value_bound`, the largest |Q| a discounted return of bounded rewards reaches;
 - the episodes' own returns that ``q.select=expert_like_return`` holds Q against: :func:`bootstrapped_returns`;
 - the per-sample weight: :func:`per_sample_weight` (reading ŵ and the priority weight), :func:`reduce_batch`,
-  :func:`weighted_reduce` and :func:`effective_sample_size`.
+  :func:`weighted_reduce` and Kish's :func:`effective_sample_size` (the weights' diagnostics of the losses, of the
+  stored ŵ and of the evaluation).
 """
 from __future__ import annotations
 
@@ -33,6 +36,8 @@ __all__ = [
     "bellman_target",
     "bootstrapped_returns",
     "effective_sample_size",
+    "linear_adversary_weight",
+    "normalisation_penalty",
     "per_sample_weight",
     "power_divergence_integrands",
     "q_value_bound",
@@ -123,7 +128,6 @@ def effective_sample_size(weight: torch.Tensor) -> torch.Tensor:
         \text{ESS} = \frac{\left(\sum_i w_i\right)^2}{\sum_i w_i^2}
 
     Examples:
-        >>> import torch
         >>> effective_sample_size(torch.tensor([1.0, 1.0, 0.0, 0.0]))
         tensor(2.)
     """
@@ -543,3 +547,54 @@ def q_value_bound(reward_max: float, gamma: float, factor: float = 1.0) -> float
         20.000000000000004
     """
     return factor * reward_max / (1.0 - gamma)
+
+
+# ---------------------------------------------------------------------- stage 1's normalisation, MABO's adversary
+def normalisation_penalty(behaviour_mean: torch.Tensor, expert_mean: torch.Tensor, relative_beta: float = 0.0
+                          ) -> torch.Tensor:
+    r"""The robust ratio loss's normalisation penalty: the squared gap of ŵ's mean under its denominator to 1.
+
+    .. math::
+
+        \left((1 - \beta)\, \mathbb{E}_b[\hat w] + \beta\, \mathbb{E}_e[\hat w] - 1\right)^2
+
+    ``behaviour_mean`` and ``expert_mean``: ŵ's mean over the batch's behaviour and expert samples; ``β``: the
+    relative ratio's mixture weight (0: the plain ratio, whose mean under the behaviour distribution is 1).
+    :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` adds it times ``normalisation_coefficient``.
+
+    Examples:
+        >>> normalisation_penalty(torch.tensor(1.5), torch.tensor(3.0))
+        tensor(0.2500)
+        >>> normalisation_penalty(torch.tensor(0.5), torch.tensor(1.5), relative_beta=0.5)
+        tensor(0.)
+    """
+    return ((1 - relative_beta) * behaviour_mean + relative_beta * expert_mean - 1).pow(2)
+
+
+def linear_adversary_weight(features: torch.Tensor, td_error: torch.Tensor, *, w_bound: float) -> torch.Tensor:
+    r"""The closed-form inner max of MABO over the linear class ``W = {θᵀφ : ‖θ‖₂ ≤ B}``.
+
+    With ``g = (1/n) Σ_i φ(x_i, a_i) δ_i``, ``|(1/n) Σ_i θᵀφ_i δ_i| = |θᵀg| ≤ B‖g‖₂`` (Cauchy–Schwarz), attained
+    at ``θ* = B g / ‖g‖₂``. Returns the maximising weights ``w*_i = θ*ᵀφ_i`` (detached, shape ``[*B]``), so that
+    ``(1/n) Σ_i w*_i δ_i = B‖g‖₂ = max_{w ∈ W} |(1/n) Σ_i w_i δ_i|``. Holding ``θ*`` fixed while differentiating
+    w.r.t. Q gives the gradient of ``B‖g‖₂`` (Danskin's theorem). ``g = 0`` gives ``w* = 0``.
+
+    Args:
+        features (Tensor): ``φ(x_i, a_i)``, shape ``[*B, d]``.
+        td_error (Tensor): ``δ_i``, shape ``[*B]`` (detached here).
+
+    Keyword Args:
+        w_bound (float): the radius ``B`` of the ball of θ.
+
+    Examples:
+        >>> phi = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+        >>> delta = torch.tensor([3.0, 4.0])  # g = (1.5, 2), ‖g‖ = 2.5
+        >>> w = linear_adversary_weight(phi, delta, w_bound=2.0)  # θ* = 2 · (0.6, 0.8)
+        >>> w, (w * delta).mean()  # B‖g‖ = 5
+        (tensor([1.2000, 1.6000]), tensor(5.))
+    """
+    features, td_error = features.detach(), td_error.detach()
+    num_features = features.shape[-1]
+    g = (features * td_error.unsqueeze(-1)).reshape(-1, num_features).mean(0)
+    theta = w_bound * g / g.norm().clamp_min(torch.finfo(g.dtype).tiny)
+    return features @ theta

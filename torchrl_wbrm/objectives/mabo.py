@@ -12,42 +12,13 @@ from torchrl.data import TensorSpec
 
 from torchrl_wbrm.modules.maximisers import ActionMaximiser
 from torchrl_wbrm.objectives._utils import per_sample
-from torchrl_wbrm.objectives.functional import average_bellman_residual, bellman_residual, reduce_batch
+from torchrl_wbrm.objectives.functional import (average_bellman_residual, bellman_residual, linear_adversary_weight,
+                                                 reduce_batch)
 from torchrl_wbrm.objectives.weighted_bellman import WeightedBellmanLoss
 
 __all__ = ["ADVERSARIES", "MABOLoss", "average_bellman_residual", "linear_adversary_weight"]
 
 ADVERSARIES = ("network", "linear")
-
-
-def linear_adversary_weight(features: torch.Tensor, td_error: torch.Tensor, *, w_bound: float) -> torch.Tensor:
-    r"""The closed-form inner max of MABO over the linear class ``W = {θᵀφ : ‖θ‖₂ ≤ B}``.
-
-    With ``g = (1/n) Σ_i φ(x_i, a_i) δ_i``, ``|(1/n) Σ_i θᵀφ_i δ_i| = |θᵀg| ≤ B‖g‖₂`` (Cauchy–Schwarz), attained
-    at ``θ* = B g / ‖g‖₂``. Returns the maximising weights ``w*_i = θ*ᵀφ_i`` (detached, shape ``[*B]``), so that
-    ``(1/n) Σ_i w*_i δ_i = B‖g‖₂ = max_{w ∈ W} |(1/n) Σ_i w_i δ_i|``. Holding ``θ*`` fixed while differentiating
-    w.r.t. Q gives the gradient of ``B‖g‖₂`` (Danskin's theorem). ``g = 0`` gives ``w* = 0``.
-
-    Args:
-        features (Tensor): ``φ(x_i, a_i)``, shape ``[*B, d]``.
-        td_error (Tensor): ``δ_i``, shape ``[*B]`` (detached here).
-
-    Keyword Args:
-        w_bound (float): the radius ``B`` of the ball of θ.
-
-    Examples:
-        >>> import torch
-        >>> phi = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
-        >>> delta = torch.tensor([3.0, 4.0])  # g = (1.5, 2), ‖g‖ = 2.5
-        >>> w = linear_adversary_weight(phi, delta, w_bound=2.0)  # θ* = 2 · (0.6, 0.8)
-        >>> w, (w * delta).mean()  # B‖g‖ = 5
-        (tensor([1.2000, 1.6000]), tensor(5.))
-    """
-    features, td_error = features.detach(), td_error.detach()
-    num_features = features.shape[-1]
-    g = (features * td_error.unsqueeze(-1)).reshape(-1, num_features).mean(0)
-    theta = w_bound * g / g.norm().clamp_min(torch.finfo(g.dtype).tiny)
-    return features @ theta
 
 
 class MABOLoss(WeightedBellmanLoss):

@@ -27,6 +27,7 @@ from torchrl_wbrm.objectives.functional import (
     basu_power_divergence,
     effective_sample_size,
     masked_reduce,
+    normalisation_penalty,
     power_divergence_integrands,
 )
 
@@ -256,8 +257,7 @@ class RobustDensityRatioLoss(LossModule):
         )
         behaviour_mean = masked_reduce(w_behaviour, "mean", behaviour_mask)
         expert_mean = masked_reduce(w_expert, "mean", expert_mask)
-        denominator_mean = (1 - self.relative_beta) * behaviour_mean + self.relative_beta * expert_mean
-        penalty = (denominator_mean - 1).pow(2)
+        penalty = normalisation_penalty(behaviour_mean, expert_mean, self.relative_beta)
         if self.normalisation_coefficient > 0:
             loss = loss + self.normalisation_coefficient * penalty
         with torch.no_grad():

@@ -29,6 +29,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.envs.transforms import Transform
 
+from torchrl_wbrm.objectives.functional import effective_sample_size
 from torchrl_wbrm.ratio.fitting import as_tensordict
 from torchrl_wbrm.ratio.weights import shape_weights
 
@@ -143,7 +144,7 @@ def compute_density_ratio(
 def _warn_if_tiny_ess(w: torch.Tensor, key: NestedKey, temper: float) -> None:
     """A warning when the shaped weights' effective sample size is below :data:`TINY_ESS_FRACTION` of the rows."""
     w = w.reshape(-1).to(torch.float64)
-    ess = float(w.sum() ** 2 / (w**2).sum()) if bool((w > 0).any()) else 0.0
+    ess = float(effective_sample_size(w)) if bool((w > 0).any()) else 0.0
     if ess < TINY_ESS_FRACTION * w.numel():
         warnings.warn(
             f"The weights stored under {key!r} have an effective sample size (Σw)²/Σw² of {ess:.1f} for {w.numel()} "
