@@ -99,7 +99,7 @@ loc, scale = d_train["observation"].mean(0), d_train["observation"].std(0).clamp
 q = make_q_network(obs_dim, act_dim, num_cells=cells, layer_norm=True, initial_bias=initial_q_value(d_train, gamma),
                    observation_loc=loc, observation_scale=scale)
 actor = make_deterministic_actor(obs_dim, action_spec, num_cells=cells, observation_loc=loc, observation_scale=scale)
-loss = WeightedBellmanLoss(q, actor_network=actor, delay_value=True, reward_bound=float(d["next", "reward"].abs().max()))
+loss = WeightedBellmanLoss(q, actor_network=actor, delay_value=True)
 loss.make_value_estimator(gamma=gamma)
 updater = SoftUpdate(loss, tau=0.05)
 expert_buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(expert.shape[0]), batch_size=batch_size)

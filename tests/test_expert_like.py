@@ -35,17 +35,11 @@ def test_a_flat_ratio_selects_nothing_and_a_zero_step_rules_an_episode_out():
 def test_the_recorded_figures_count_the_true_episodes_a_threshold_could_separate():
     """``separable_true_episodes``: D's true expert episodes that score above every other episode of D. The data name
     episodes 3, 4, 7 and 11 the expert's; D holds the first three."""
-    from types import SimpleNamespace
-
-    from tensordict import TensorDict
-
-    from torchrl_wbrm.training.trainer import WBRMTrainer
-
-    owner = SimpleNamespace(datasets=SimpleNamespace(metadata={"behaviour_expert_episode_ids": [3, 4, 7, 11]}))
+    from torchrl_wbrm.ratio.weighting import expert_like_figures
 
     def figures(w, episode):
-        d = TensorDict({"episode": torch.tensor(episode).reshape(-1, 1)}, batch_size=[len(episode)])
-        rows, out = WBRMTrainer._expert_like(owner, d, torch.tensor(w).reshape(-1, 1))
+        rows, out = expert_like_figures(torch.tensor(w).reshape(-1, 1), torch.tensor(episode).reshape(-1, 1),
+                                        [3, 4, 7, 11])
         return rows.tolist(), out
 
     # mean ŵ 11.7 / 7; the scores (geometric means of ŵ / mean ŵ): ep 3: 2.39, ep 4: 0.90, ep 7: 0.12, random ep 2:

@@ -68,7 +68,7 @@ def test_wbrm_scores_q_against_the_expert_like_episodes_returns(tmp_path):
     w = compute_density_ratio(trainer.ratio_network, d, chunk_size=8192)
     rows = expert_like_episodes(w, d["episode"])
     assert 0 < int(rows.sum()) < d.shape[0]  # this fit selects some episodes, not all
-    assert torch.equal(trainer.q_select_data["observation"], d["observation"][rows])
+    assert torch.equal(trainer.selection.criterion.rows["observation"], d["observation"][rows])
     # the figure of the delivered parameters, by hand
     sel = d[rows].clone().set("density_ratio", torch.ones(int(rows.sum()), 1))
     with torch.no_grad():
@@ -99,7 +99,7 @@ def _check_delivered(trainer, results, figure):
 def test_wbrm_scores_the_actor_against_the_expert_like_episodes_actions(tmp_path):
     """The figure is the actor's cloning error on the expert-like rows, in unit actions, as the cloning term's."""
     trainer, results = _run(tmp_path, "action", select="expert_like_action")
-    d = trainer.q_select_data
+    d = trainer.selection.criterion.rows
     assert 0 < d.shape[0] < trainer.q_train_data.shape[0]
     spec = trainer.action_spec
     with torch.no_grad():
@@ -116,7 +116,9 @@ def test_with_w_equal_to_one_it_falls_back_to_the_held_out_residual(tmp_path, se
     """BRM (ŵ ≡ 1) has no expert-like episode: it selects by the held-out residual, as
     ``q.select=held_out_weighted_residual`` does, and says so."""
     trainer, results = _run(tmp_path, "brm", select=select, algo="brm")
-    assert trainer.q_select_data is None
+    from torchrl_wbrm.training.selection import HeldOutWeightedResidual
+
+    assert isinstance(trainer.selection.criterion, HeldOutWeightedResidual)
     assert results["selection"]["figure"] == "held_out_weighted_residual"
     assert all(not k.startswith("expert_like") for r in trainer.history if r["stage"] == "q" for k in r)
     _, plain = _run(tmp_path, "brm_residual", select="held_out_weighted_residual", algo="brm")

@@ -136,12 +136,12 @@ def test_a_cells_seeds_train_as_one_job_with_a_separate_runs_figures(tmp_path, m
     assert jobs == [([0, 1], parent)]  # one job for the cell's two seeds
     assert not (parent / "results.json").exists()
     record = json.loads((parent / SEEDS_RECORD).read_text())
-    assert record["kind"] == "seeds" and record["vectorised"] and record["seeds"] == [0, 1]
+    assert record["kind"] == "seeds" and record["seeds"] == [0, 1]
     labels = {"block": "b", "env": "lqr_exp1", "setting": "s", "method": "wbrm"}
     for seed in (0, 1):
         results = json.loads((cell_dir(out, cell, seed) / "results.json").read_text())
         assert results["seed"] == seed and results["study"] == labels and results["status"] == "finished"
-        assert results["job"]["seeds"] == [0, 1] and results["job"]["vectorised"]
+        assert results["job"]["seeds"] == [0, 1]
         assert results["wall_seconds"] == pytest.approx(results["job"]["wall_seconds"] / 2)
         alone = run_overrides(_overrides(cell, seed, budget), tmp_path / "alone" / f"seed{seed}")
         for key in ("regret", "return"):

@@ -67,10 +67,10 @@ def test_a_stage_1_that_only_ties_its_start_is_not_flagged(tmp_path):
 
 def test_stored_ratios_far_from_one_are_flagged(tmp_path):
     trainer = WBRMTrainer(tiny(), tmp_path, progress=False)
-    check = trainer._check_ratio(torch.full((100, 1), 1e-3))
+    check = trainer.ratio_fitter.verdict(torch.full((100, 1), 1e-3))
     assert check["collapse"] and check["at_lower_bound"] == 1.0
     assert any("the mean of ŵ over D is 0.001" in r for r in check["reasons"])
-    assert not trainer._check_ratio(torch.full((100, 1), 1.5))["collapse"]
+    assert not trainer.ratio_fitter.verdict(torch.full((100, 1), 1.5))["collapse"]
     trainer.release()
 
 
@@ -219,3 +219,30 @@ def test_a_minari_behaviour_dataset_of_one_or_two_episodes_is_named(tmp_path, ra
     with pytest.raises(ValueError, match=rf"The behaviour dataset '{ids['behaviour']}' holds {n} episode\(s\); at "
                                          r"least 4 are needed"):
         make_minari_datasets(MinariDataConfig(expert=ids["expert"], behaviour=ids["behaviour"], data_path=str(tmp_path)))
+
+
+# ---------------------------------------------------------------------- Q's scale: one rule, one factor
+def test_q_past_its_bound_warns_once_and_flags_the_same_rule():
+    """With γ = 0.9 and max|r| = 1 no return exceeds 10: a training figure of Q past 10 · 10 warns once, naming the
+    figure and the likely cause, and the results' flag reads the same limit."""
+    from torchrl_wbrm.training.stops import QBound
+
+    bound = QBound(1.0, 0.9)
+    assert bound.bound == pytest.approx(10.0) and bound.limit == pytest.approx(100.0)
+    assert bound.exceeded(-100.5) and not bound.exceeded(99.0) and not bound.exceeded(None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bound.watch({"q_mean": 99.0, "loss_value": 1e6}, step=1)  # a loss is not a Q figure
+    with pytest.warns(UserWarning, match=r"\|target_value_mean\| reached 150 at step 7, past 10 · max\|r\| / "
+                                         r"\(1 − γ\) = 100 .*q.init_bias"):
+        bound.watch({"q_mean": 5.0, "target_value_mean": -150.0}, step=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bound.watch({"q_mean": 1e9}, step=8)  # once per run
+
+
+def test_a_run_reports_its_q_scale_against_its_own_bound(tmp_path):
+    results = WBRMTrainer(tiny(), tmp_path, progress=False).run()
+    scale = results["q_scale"]
+    assert scale["factor"] == 10.0 and scale["blow_up"] == (scale["max_abs_q_mean"] > 10.0 * scale["bound"])
+    assert ("q_blow_up" in results["flags"]) == scale["blow_up"]

@@ -7,7 +7,7 @@ the studies' budgets from ``configs/study_budgets.yaml``), locally or through a 
 skips the runs whose ``results.json`` exists, so a study resumes where it stopped.
 
 Locally, a cell's seeds train together in one process (:func:`run_cell_seeds`: one
-:func:`~torchrl_wbrm.training.seeds.run_seeds` job, vectorised over the seeds for ``wbrm``, ``brm`` and ``fqi``), and
+:func:`~torchrl_wbrm.training.seeds.run_seeds` job, the seeds one after another), and
 ``jobs`` processes run the cells in parallel. Each seed's run directory (:func:`cell_dir`) holds what a separate run
 writes there, so whatever reads a study's output finds the same files.
 """
@@ -162,11 +162,9 @@ def run_cell_seeds(cell: dict, seeds, budget: list[str], out: str, labels=LABELS
     whose directory holds a checkpoint (an interrupted single run) resumes from it on its own, as :func:`run_cell`
     does, and so does a cell with one unfinished seed (a single run, which checkpoints). The other seeds train as one
     job: the cell's config with ``seeds=[...]``, by :func:`~torchrl_wbrm.training.seeds.run_seeds` into the seeds'
-    parent directory, so each seed's directory holds what its separate run writes there (a vectorised job writes no
-    checkpoint, so its interrupted seeds run again; seeds trained one at a time checkpoint, and resume on their
-    own). Each seed's ``wall_seconds`` is its share of the job's wall time (the
-    job's divided by its number of seeds), and ``"job"`` records the job's seeds, wall time and whether it was
-    vectorised. The job's combined results (``"kind": "seeds"``) go to :data:`SEEDS_RECORD` in the parent
+    parent directory, so each seed's directory holds what its separate run writes there (its checkpoint included: an
+    interrupted seed resumes on its own). Each seed's ``wall_seconds`` is its share of the job's wall time (the
+    job's divided by its number of seeds), and ``"job"`` records the job's seeds and wall time. The job's combined results (``"kind": "seeds"``) go to :data:`SEEDS_RECORD` in the parent
     directory, not to a ``results.json`` there: each seed's run is read once, from its own directory.
     """
     from torchrl_wbrm.keys import CHECKPOINT
@@ -200,7 +198,7 @@ def _run_seeds_job(cell: dict, seeds: list[int], budget: list[str], dirs: dict[i
     combined = run_seeds(cfg, parent, progress=False)
     wall = time.perf_counter() - start
     (parent / "results.json").unlink(missing_ok=True)  # the seeds' results are read from their own directories
-    job = {"seeds": seeds, "wall_seconds": wall, "vectorised": combined["vectorised"]}
+    job = {"seeds": seeds, "wall_seconds": wall}
     runs = []
     for run in combined["runs"]:
         path = dirs[int(run["seed"])] / "results.json"

@@ -42,9 +42,12 @@ __all__ = [
     "power_divergence_integrands",
     "q_value_bound",
     "reduce_batch",
+    "relative_density_ratio",
+    "return_residual",
     "masked_reduce",
     "td3bc_lambda",
     "weighted_bellman_residual",
+    "weighted_mean_squared_residual",
     "weighted_reduce",
 ]
 
@@ -532,8 +535,9 @@ def q_value_bound(reward_max: float, gamma: float, factor: float = 1.0) -> float
 
         |Q(x, a)| \le \sum_{t \ge 0} \gamma^t \max|r| = \frac{\max|r|}{1 - \gamma}
 
-    The loss's divergence warning and the trainer's ``q_blow_up`` flag both compare Q against this bound, each with
-    its own ``factor`` (a margin over the exact bound).
+    The trainer's one rule of Q's scale (:class:`~torchrl_wbrm.training.stops.QBound`: its warning during training and
+    the results' ``q_blow_up`` flag) compares Q against this bound times one ``factor`` (a margin over the exact
+    bound).
 
     Args:
         reward_max (float): max|r| over the data.
@@ -547,6 +551,52 @@ def q_value_bound(reward_max: float, gamma: float, factor: float = 1.0) -> float
         20.000000000000004
     """
     return factor * reward_max / (1.0 - gamma)
+
+
+# ---------------------------------------------------------------------- what the trainer reads off a run
+def relative_density_ratio(w: torch.Tensor, beta: float) -> torch.Tensor:
+    r"""The relative density ratio of ``w = p_e / p_b``, for a mixture weight ``β`` (Yamada et al., 2013).
+
+    .. math::
+
+        w_\beta = \frac{p_e}{\beta p_e + (1 - \beta) p_b} = \frac{w}{\beta w + 1 - \beta} \le \frac{1}{\beta}
+
+    ``β = 0`` is ``w`` itself. The trainer applies it to the exact ratio (``ratio.source=exact``) with
+    ``ratio.relative_beta``, the ratio the robust loss then fits.
+
+    Examples:
+        >>> relative_density_ratio(torch.tensor([0.0, 1.0, 4.0]), 0.5)
+        tensor([0.0000, 1.0000, 1.6000])
+    """
+    return w / (beta * w + 1 - beta)
+
+
+def weighted_mean_squared_residual(squared_residual: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    r"""``mean ŵ δ²``: each row's squared Bellman residual ``δ²`` weighted by its stored ŵ, averaged over the rows.
+
+    .. math::
+
+        \frac{1}{N} \sum_i \hat w_i \, \delta_i^2
+
+    The squared residual stage 2 minimises (:func:`weighted_bellman_residual`, ``reduction="mean"``), read on
+    held-out episodes by ``q.select=held_out_weighted_residual``.
+
+    Examples:
+        >>> weighted_mean_squared_residual(torch.tensor([1.0, 4.0]), torch.tensor([2.0, 0.5]))
+        tensor(2.)
+    """
+    return (weight.reshape(squared_residual.shape).to(squared_residual) * squared_residual).mean()
+
+
+def return_residual(q_value: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+    r"""``mean (Q(x_t, a_t) − G_t)²``: Q against each row's own discounted return ``G_t``
+    (:func:`bootstrapped_returns`), the figure of ``q.select=expert_like_return``.
+
+    Examples:
+        >>> return_residual(torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0]))
+        tensor(2.5000)
+    """
+    return (q_value.reshape(-1) - returns.reshape(-1)).pow(2).mean()
 
 
 # ---------------------------------------------------------------------- stage 1's normalisation, MABO's adversary

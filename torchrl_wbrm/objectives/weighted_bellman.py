@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -29,7 +28,6 @@ from torchrl_wbrm.objectives.functional import (
     bellman_target,
     effective_sample_size,
     per_sample_weight,
-    q_value_bound,
     td3bc_lambda,
     weighted_bellman_residual,
 )
@@ -154,7 +152,7 @@ class WeightedBellmanLoss(LossModule):
 
     vmap and compile: ``forward`` and the public loss methods make no host read where
     ``torch.compiler.is_compiling()`` or a functorch transform (``torch.vmap``) is active; there the input checks of
-    values (finite, signs, action indices) and the Q-bound watch skip themselves, and ``check_inputs=False`` turns
+    values (finite, signs, action indices) skip themselves, and ``check_inputs=False`` turns
     the value checks off in eager use too. ``vmap_randomness`` is ``"different"`` where the loss draws random
     numbers (``maximiser="sampled"``, ``policy_noise``). A dtype or device move (``.double()``, ``.to(device)``)
     clears every cache (all are ``_cache``-named, dropped by TorchRL's ``_erase_cache``).
@@ -202,11 +200,6 @@ class WeightedBellmanLoss(LossModule):
             2021; α = 2.5 there). Defaults to ``None`` (no behaviour cloning).
         check_inputs (bool): check the batch's values (finite entries, non-negative ŵ, action indices in range) in
             eager use; each check is a host read. Defaults to ``True``; skipped under compile and vmap regardless.
-        reward_bound (float, optional): max|r| over the data (e.g. ``data["next", "reward"].abs().max()``), for the
-            divergence warning: Q past ``q_bound_margin · reward_bound / (1 − γ)`` (2 × by default) warns once and
-            sets ``q_bound_exceeded``. Defaults to ``None``: the running max|r| over the batches seen, checked from
-            the ``q_bound_min_batches``-th batch (100) on. The watch keeps its peaks on the device and reads them
-            every ``q_bound_check_every`` calls (100); ``watch_q_bound = False`` turns it off.
         reduction (str, optional): ``"mean"`` (default, also for ``None``), ``"sum"`` or ``"none"``. For
             ``"squared"``, ``"none"`` gives the per-sample ``ŵ_i δ_i²``. For ``"absolute_mean"`` it gives the signed
             per-sample ``ŵ_i δ_i`` *before* the absolute value (``|mean|`` of it is the ``"mean"`` loss), and
@@ -292,18 +285,6 @@ class WeightedBellmanLoss(LossModule):
     #: How :class:`~torchrl_wbrm.objectives._fast.NetworkCall` calls a plain network: on tensors (``True``) or
     #: through a TensorDict and ``to_module`` (``False``); the same computation either way (tested).
     fast_path: bool = True
-    #: Q(x, a) past ``q_bound_margin · max|r| / (1 − γ)`` warns once: no discounted return of such rewards is that
-    #: large, so Q is diverging. ``q_bound_exceeded`` then stays ``True``. max|r| is ``reward_bound`` when set (e.g.
-    #: max|r| over the whole dataset: the trainer's and a script's best choice), else the running max over the
-    #: batches seen, and then only after ``q_bound_min_batches`` batches (a rare large reward, as MountainCar's goal
-    #: reward, is missing from most batches).
-    q_bound_margin: float = 2.0
-    q_bound_min_batches: int = 100
-    #: Calls between two reads of the Q-bound watch's device-side peaks (see :meth:`_watch_q_bound`).
-    q_bound_check_every: int = 100
-    #: The Q-bound watch on (``True``, default) or off.
-    watch_q_bound: bool = True
-    q_bound_exceeded: bool = False
 
     value_network: TensorDictModule
     value_network_params: TensorDictParams
@@ -332,7 +313,6 @@ class WeightedBellmanLoss(LossModule):
         num_action_samples: int = 64,
         weight_actor_loss: bool = False,
         bc_alpha: float | None = None,
-        reward_bound: float | None = None,
         check_inputs: bool = True,
         reduction: str | None = None,
     ) -> None:
@@ -354,9 +334,6 @@ class WeightedBellmanLoss(LossModule):
                 raise ValueError(f"policy_noise must be a finite number >= 0 or None, got {policy_noise!r}.")
             if not (math.isfinite(float(noise_clip)) and float(noise_clip) >= 0):
                 raise ValueError(f"noise_clip must be a finite number >= 0, got {noise_clip!r}.")
-        if reward_bound is not None and not (math.isfinite(float(reward_bound)) and float(reward_bound) > 0):
-            raise ValueError(f"reward_bound must be a finite number > 0 (max|r| over the data) or None, got "
-                             f"{reward_bound!r}.")
         if residual not in RESIDUALS:
             raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}.")
         discrete = isinstance(value_network, QValueActor) or self.default_keys.action_value in getattr(
@@ -387,7 +364,6 @@ class WeightedBellmanLoss(LossModule):
         self.weight_actor_loss = bool(weight_actor_loss)
         self.bc_alpha = None if bc_alpha is None else float(bc_alpha)
         self.reduction = reduction
-        self.reward_bound = None if reward_bound is None else float(reward_bound)
         self.convert_to_functional(value_network, "value_network",
                                    expand_dim=self.num_qvalue_nets if self.num_qvalue_nets > 1 else None,
                                    create_target_params=self.delay_value)
@@ -819,7 +795,6 @@ class WeightedBellmanLoss(LossModule):
                     "the weighted residual would be 0 and its effective sample size undefined. Check the stored "
                     "weights (a collapsed density ratio?) or sample larger batches."
                 )
-        self._watch_q_bound(q_value, tensordict)
         # ŵ inside the per-sample term (the paper's mean) or in the reduction's weights (self-normalised); TorchRL's
         # priority weight always in the reduction's weights, Σ pᵢ lᵢ / Σ pᵢ
         weight, reduce_weight = density_ratio, priority
@@ -866,68 +841,6 @@ class WeightedBellmanLoss(LossModule):
             return False
         return (self.use_prioritized_weights in (True, "auto") and not (self.use_weights and key == self.tensor_keys.weight)
                 and fast_get(tensordict, key) is not None)
-
-    @torch.no_grad()
-    def _watch_q_bound(self, q_value: torch.Tensor, tensordict: TensorDictBase) -> None:
-        """Warn once when ``max |Q(x, a)|`` passes ``q_bound_margin · max|r| / (1 − γ)``: no discounted return of
-        these rewards is that large. max|r| is :attr:`reward_bound`, or the running max over every batch seen, and
-        then no warning before ``q_bound_min_batches`` batches.
-
-        The peaks of ``|Q|`` (since the last read) and of ``|r|`` are kept as tensors on the batch's device (no host
-        read); they are read back on the first call that may warn (the first batch with ``reward_bound``, the
-        ``q_bound_min_batches``-th without) and then every ``q_bound_check_every`` calls, so a peak between two
-        reads is reported at the next one. Off with ``watch_q_bound = False``, and skipped inside ``torch.compile``
-        and functorch transforms (``torch.vmap``), where nothing can be read back (the state lives in a
-        ``_cache``-named attribute, dropped by a dtype or device move)."""
-        if not self.watch_q_bound or self.q_bound_exceeded or not checks_run(True):
-            return
-        q_peak = q_value.detach().abs().amax().to(torch.float64)
-        r_peak = fast_get(tensordict, _next(self.tensor_keys.reward)).detach().abs().amax().to(torch.float64)
-        state = self.__dict__.get("_cache_q_watch")
-        if state is not None:
-            calls, q_seen, r_seen = state
-            q_peak = q_peak if q_seen is None else torch.maximum(q_seen.to(q_peak.device), q_peak)
-            r_peak = torch.maximum(r_seen.to(r_peak.device), r_peak)
-        else:
-            calls = 0
-        calls += 1
-        self.__dict__["_cache_q_watch"] = (calls, q_peak, r_peak)
-        bound_given = self.reward_bound
-        first = 1 if bound_given is not None else max(1, int(self.q_bound_min_batches))
-        if calls < first or (calls - first) % max(1, int(self.q_bound_check_every)):
-            return
-        self.__dict__["_cache_q_watch"] = (calls, None, r_peak)  # |Q|'s peak since the last read
-        gamma = self._gamma_value()
-        if not gamma < 1.0:
-            return
-        q_max, r_max = torch.stack([q_peak, r_peak.to(q_peak.device)]).tolist()
-        if bound_given is None:
-            source = f"over the {calls} batches seen"
-        else:
-            r_max, source = float(bound_given), "the reward_bound given"
-        bound = q_value_bound(r_max, gamma, self.q_bound_margin)
-        if r_max > 0 and q_max > bound:
-            self.q_bound_exceeded = True
-            warnings.warn(
-                f"WeightedBellmanLoss: |Q(x, a)| reached {q_max:.4g}, past {self.q_bound_margin:g} · max|r| / (1 − γ) "
-                f"= {bound:.4g} (max|r| = {r_max:.4g}, {source}; γ = {gamma:g}), larger than any discounted return "
-                "of these rewards: Q is diverging. Likely cause: Q started far from its targets (set make_q_network's "
-                "initial_bias to mean(r) / (1 − γ), e.g. initial_q_value(data, gamma)); else a learning rate too high "
-                "for the bootstrap, or a target updated too fast (delay_value=True with a smaller SoftUpdate tau). "
-                "This warning is given once per loss.",
-                UserWarning,
-                stacklevel=3,
-            )
-
-    def _gamma_value(self) -> float:
-        """γ as a float, read from the value estimator once per γ tensor and version (read anew after
-        ``make_value_estimator``, the move to the batch's device in :meth:`_target` or an in-place change)."""
-        gamma = self.value_estimator.gamma
-        cached = self.__dict__.get("_cache_gamma_float")
-        version = getattr(gamma, "_version", None)
-        if cached is None or cached[0] is not gamma or cached[1] != version:
-            cached = self.__dict__["_cache_gamma_float"] = (gamma, version, float(gamma))
-        return cached[2]
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``−mean_i Q(x_i, μ(x_i))`` (Q frozen), optionally ŵ-weighted and with TD3+BC's cloning term.

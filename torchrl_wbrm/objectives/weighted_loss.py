@@ -215,7 +215,6 @@ class WeightedLoss(LossModule):
         self.__dict__["_wrapped"] = loss
         self.reduction = reduction
         self.use_prioritized_weights = use_prioritized_weights
-        self.native_priority_weight = reads_priority_weight(loss)
         self.batch_coupled_terms = dict(_BATCH_COUPLED_TERMS.get(name, {}))
         loss.use_prioritized_weights = False  # the product ŵ·p is applied here, once
         loss.reduction = "none"  # per-sample terms: TorchRL's losses read self.reduction when they reduce

@@ -13,7 +13,8 @@ from torchrl_wbrm.training.config import (
     resolve_defaults,
     validate_config,
 )
-from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir, get_rng_state, set_rng_state, set_seed
+from torchrl_wbrm.training.checkpoint import get_rng_state, set_rng_state, set_seed
+from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir
 
 __all__ = [
     "EvalConfig",

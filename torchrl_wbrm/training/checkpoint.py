@@ -1,10 +1,15 @@
-"""Reading a checkpoint: ``torch.load(weights_only=True)``, so reading one never runs code; a corrupted checkpoint,
-or a file that is not one, is a clear error naming the file.
+"""The checkpoint format: what a checkpoint holds (:func:`checkpoint_state`), writing it atomically
+(:func:`write_checkpoint`), reading it (:func:`read_checkpoint`: ``torch.load(weights_only=True)``, so reading one
+never runs code; a corrupted checkpoint, or a file that is not one, is a clear error naming the file), restoring the
+training state from it (:func:`restore_training_state`) and the random states it carries (:func:`get_rng_state`,
+:func:`set_rng_state`).
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import pickle
+import random
 import pickletools
 import re
 import warnings
@@ -14,11 +19,94 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["CHECKPOINT_KEYS", "data_fingerprint", "read_checkpoint", "same_data"]
+from torchrl_wbrm.training.results import atomic_write
+
+__all__ = ["CHECKPOINT_KEYS", "checkpoint_state", "data_fingerprint", "get_rng_state", "read_checkpoint",
+           "restore_training_state", "same_data", "set_rng_state", "set_seed", "write_checkpoint"]
 
 
-#: Keys of a checkpoint written by :meth:`WBRMTrainer.state_dict`.
-CHECKPOINT_KEYS = ("state", "history", "rng", "q_loss", "config", "data_fingerprint")
+#: Keys of a checkpoint written by :func:`checkpoint_state`.
+CHECKPOINT_KEYS = ("state", "history", "rng", "q_loss", "optimisers", "schedulers", "config", "data_fingerprint")
+
+
+def set_seed(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def get_rng_state() -> dict:
+    """torch's, NumPy's and Python's global random states, as tensors and primitives only (NumPy's array becomes an
+    ``int64`` tensor), so a checkpoint holding them reads with ``torch.load(weights_only=True)``. Where this process
+    has used CUDA (``device=cuda``: batches drawn, noise and random actions sampled on the device), each CUDA
+    device's generator state too (``"cuda"``)."""
+    name, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
+    numpy_state = {"name": str(name), "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                   "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)}
+    state = {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": random.getstate()}
+    if torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    """Restore :func:`get_rng_state`'s states (NumPy's also from the tuple ``np.random.get_state()`` returns)."""
+    torch.set_rng_state(state["torch"])
+    numpy_state = state["numpy"]
+    if isinstance(numpy_state, dict):
+        numpy_state = (numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
+                       numpy_state["has_gauss"], numpy_state["cached_gaussian"])
+    np.random.set_state(numpy_state)
+    random.setstate(state["python"])
+    if "cuda" in state:
+        if not torch.cuda.is_available() or torch.cuda.device_count() < len(state["cuda"]):
+            raise RuntimeError(f"Cannot restore the random state of {len(state['cuda'])} CUDA device(s) saved with "
+                               f"this checkpoint: this machine has {torch.cuda.device_count()}.")
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def checkpoint_state(*, state: dict, history: list, q_loss, optimisers: dict, schedulers: dict,
+                     data_fingerprint: str, config: dict, selection=None, ratio_fitter=None) -> dict:
+    """What a checkpoint holds: the stage and step, the history, the random states, stage 2's loss, optimisers and
+    schedules, the data's fingerprint, the config, ``q.select``'s best and last parameters (``selection``, a
+    :class:`~torchrl_wbrm.training.selection.Selection`) and stage 1's fitter (its loss, optimiser, best state and
+    step count)."""
+    sd = {
+        "state": dict(state),
+        "history": copy.deepcopy(history),
+        "rng": get_rng_state(),
+        "q_loss": q_loss.state_dict(),
+        "optimisers": {name: optimiser.state_dict() for name, optimiser in optimisers.items()},
+        "schedulers": {name: scheduler.state_dict() for name, scheduler in schedulers.items()},
+        "data_fingerprint": data_fingerprint,
+        "config": config,
+        "q_best": None if selection is None else selection.best,
+        "q_last": None if selection is None else selection.last_state,
+    }
+    if ratio_fitter is not None:
+        fitter = ratio_fitter.state_dict()
+        sd.update(ratio_loss=fitter["loss_module"], ratio_optim=fitter["optimizer"], ratio_best=fitter["best"],
+                  ratio_steps=fitter["num_steps"])
+    return sd
+
+
+def write_checkpoint(path: Path, sd: dict) -> None:
+    """Write ``sd`` to ``path`` atomically: a fresh temporary file beside it, fsynced, then renamed over it."""
+    atomic_write(path, lambda f: torch.save(sd, f), tmp=path.with_suffix(".tmp"))
+
+
+def restore_training_state(sd: dict, *, q_loss, optimisers: dict, schedulers: dict, ratio_fitter=None) -> None:
+    """Load a checkpoint's (:func:`read_checkpoint`) stage-2 loss, optimisers and schedules and stage 1's fitter into
+    the run's own; the random states are restored apart (:func:`set_rng_state`), once everything else is built."""
+    q_loss.load_state_dict(sd["q_loss"])
+    for name, optimiser in optimisers.items():
+        optimiser.load_state_dict(sd["optimisers"][name])
+    for name, scheduler in schedulers.items():
+        scheduler.load_state_dict(sd["schedulers"][name])
+    if ratio_fitter is not None:
+        ratio_fitter.load_state_dict({"loss_module": sd["ratio_loss"], "optimizer": sd["ratio_optim"],
+                                      "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
 
 
 def _numpy_array_globals() -> list:
@@ -117,9 +205,9 @@ def read_checkpoint(path: Path) -> dict:
     return sd
 
 
-#: the type of each entry of a checkpoint :meth:`WBRMTrainer.state_dict` writes
-_CHECKPOINT_TYPES = {"state": dict, "history": list, "rng": dict, "q_loss": dict, "config": dict,
-                     "data_fingerprint": (str, int, float)}
+#: the type of each entry of a checkpoint :func:`checkpoint_state` writes
+_CHECKPOINT_TYPES = {"state": dict, "history": list, "rng": dict, "q_loss": dict, "optimisers": dict,
+                     "schedulers": dict, "config": dict, "data_fingerprint": (str, int, float)}
 
 
 def _as_tuple(kind) -> tuple:

@@ -1,5 +1,6 @@
-r"""The selection record of ``results.json``: what ``q.select`` delivered against the best and the last evaluated
-parameters, by their online returns, and how many online episodes the choice itself used.
+r"""``q.select``: one criterion object per choice (:func:`make_criterion`), the best-so-far bookkeeping
+(:class:`Selection`), and the selection record of ``results.json``: what ``q.select`` delivered against the best
+and the last evaluated parameters, by their online returns, and how many online episodes the choice itself used.
 
 Every criterion of ``q.select`` reads D alone (the held-out Bellman residual, ŵ-weighted or not, or D's expert-like
 episodes; ``last`` reads nothing), so the selection uses zero online episodes; the online returns recorded here are
@@ -18,7 +19,18 @@ candidates (their evaluation during training; the final evaluation where they ar
 """
 from __future__ import annotations
 
-__all__ = ["SELECTION_ONLINE_EPISODES", "selection_record"]
+import copy
+import math
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_wbrm.data.datasets import check_episodes_in_order
+from torchrl_wbrm.objectives.functional import (action_cloning, bootstrapped_returns, return_residual,
+                                                weighted_mean_squared_residual)
+
+__all__ = ["EXPERT_LIKE", "ExpertLikeAction", "ExpertLikeReturn", "HeldOutResidual", "HeldOutWeightedResidual",
+           "SELECTION_ONLINE_EPISODES", "Selection", "make_criterion", "selection_record"]
 
 #: online episodes each ``q.select`` criterion reads to choose (all of them read D only)
 SELECTION_ONLINE_EPISODES = {"last": 0, "held_out_residual": 0, "held_out_weighted_residual": 0,
@@ -73,3 +85,155 @@ def selection_record(history: list[dict], select: str, figure: str | None, *, ep
     if same and best:  # against the delivered parameters' own entry among the candidates
         record["regret"] = best[0]["return"] - same[-1]["return"]
     return record
+
+
+# ---------------------------------------------------------------------- the criteria
+class HeldOutResidual:
+    """``q.select=held_out_residual``: the mean squared Bellman residual on D's held-out episodes, every row weighing
+    1 (``"held_out_bellman_residual"``, which every run with a Bellman loss reports)."""
+
+    figure = "held_out_bellman_residual"
+
+    def score(self, squared_residual: torch.Tensor) -> float:
+        return squared_residual.mean().item()
+
+
+class HeldOutWeightedResidual:
+    """``q.select=held_out_weighted_residual``: the held-out rows' squared residuals weighted by their ŵ, shaped as
+    D's rows are (:func:`~torchrl_wbrm.objectives.functional.weighted_mean_squared_residual`: the squared residual
+    stage 2 minimises).
+
+    Args:
+        weights: the held-out rows' stored weights, in their order.
+    """
+
+    figure = "held_out_weighted_residual"
+
+    def __init__(self, weights: torch.Tensor):
+        self.weights = weights
+
+    def score(self, squared_residual: torch.Tensor) -> float:
+        return weighted_mean_squared_residual(squared_residual, self.weights.to(squared_residual.device)).item()
+
+
+class ExpertLikeAction:
+    """``q.select=expert_like_action``: the actor's cloning error on the rows of D's expert-like episodes,
+    ``‖(μ(x_t) − a_t) / h‖² / m`` (:func:`~torchrl_wbrm.objectives.functional.action_cloning`), the actor in
+    evaluation mode.
+
+    Args:
+        rows: the expert-like rows (``"observation"``, ``"action"``).
+        actor: the evaluated actor.
+        half_width: the action box's half-width ``h``.
+        device: where the actor runs.
+    """
+
+    figure = "expert_like_action_error"
+
+    def __init__(self, rows: TensorDictBase, actor, half_width: torch.Tensor, device):
+        self.rows, self.actor, self.half_width, self.device = rows, actor, half_width, device
+
+    def score(self, squared_residual: torch.Tensor | None = None) -> float:
+        training = self.actor.training
+        self.actor.eval()  # as evaluated, also where the final selection scores the last step
+        try:
+            mu = self.actor(self.rows.select("observation").to(self.device))["action"]
+        finally:
+            self.actor.train(training)
+        return action_cloning(mu, self.rows["action"].to(mu), self.half_width.to(mu)).item()
+
+
+class ExpertLikeReturn:
+    """``q.select=expert_like_return``: Q against each row's own discounted return on the rows of D's expert-like
+    episodes (:func:`~torchrl_wbrm.objectives.functional.return_residual` of
+    :func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`, bootstrapped at each episode's end by the
+    Bellman target).
+
+    Args:
+        rows: the expert-like episodes' rows, whole episodes in time order (``"observation"``, ``"action"``,
+            ``"episode"``, ``"next"``).
+        loss: the Bellman loss (its :meth:`~torchrl_wbrm.objectives.WeightedBellmanLoss.bellman_error`).
+        gamma: the discount.
+        device: where the loss runs.
+    """
+
+    figure = "expert_like_return_error"
+
+    def __init__(self, rows: TensorDictBase, loss, gamma: float, device):
+        check_episodes_in_order(rows, "D's expert-like episodes (q.select=expert_like_return)")
+        self.rows, self.loss, self.gamma, self.device = rows, loss, gamma, device
+
+    def score(self, squared_residual: torch.Tensor | None = None) -> float:
+        d = self.rows
+        q, y = self.loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
+        g = bootstrapped_returns(d["next", "reward"].reshape(-1).to(y), y.reshape(-1), d["episode"].reshape(-1),
+                                 self.gamma)
+        return return_residual(q, g).item()
+
+
+#: the q.select choices scored on D's expert-like episodes
+EXPERT_LIKE = ("expert_like_action", "expert_like_return")
+
+
+def make_criterion(select: str, *, held_out_weights=None, expert_like_rows: TensorDictBase | None = None, actor=None,
+                   half_width=None, loss=None, gamma: float | None = None, device=None):
+    """The criterion of ``q.select=select`` (``None`` for ``last``). ``held_out_weights()`` returns the held-out rows'
+    stored weights, called only for :class:`HeldOutWeightedResidual`. An expert-like choice without expert-like rows
+    (``expert_like_rows`` ``None`` or empty: ŵ ≡ 1, or no episode likelier under the expert's distribution than
+    under D's) falls back to :class:`HeldOutWeightedResidual`, and its ``figure`` says so."""
+    if select == "last":
+        return None
+    if select == "held_out_residual":
+        return HeldOutResidual()
+    if select in EXPERT_LIKE and expert_like_rows is not None and expert_like_rows.shape[0] > 0:
+        if select == "expert_like_action":
+            return ExpertLikeAction(expert_like_rows.select("observation", "action").clone(), actor, half_width,
+                                    device)
+        return ExpertLikeReturn(expert_like_rows.select("observation", "action", "episode", "next").clone(), loss,
+                                gamma, device)
+    if select in EXPERT_LIKE or select == "held_out_weighted_residual":
+        return HeldOutWeightedResidual(held_out_weights())
+    raise ValueError(f"q.select={select!r} is not known: choose one of {sorted(SELECTION_ONLINE_EPISODES)}.")
+
+
+class Selection:
+    """``q.select`` over stage 2's evaluations: the best evaluation's step, score and parameters so far, and, once
+    the final evaluation has loaded the best parameters into the module, the last step's parameters (a resume with
+    more steps goes on from them).
+
+    Args:
+        criterion: what is minimised (:func:`make_criterion`).
+    """
+
+    def __init__(self, criterion):
+        self.criterion = criterion
+        self.best: dict | None = None
+        self.last_state: dict | None = None
+
+    @property
+    def figure(self) -> str:
+        return self.criterion.figure
+
+    def keep_if_best(self, step: int, score: float | None, module: torch.nn.Module) -> None:
+        """Keep ``module``'s parameters if ``score`` is the lowest so far (the earliest wins a tie; a non-finite
+        score never does)."""
+        if score is None or not math.isfinite(score):
+            return
+        if self.best is None or score < self.best["residual"]:
+            self.best = {"step": step, "residual": score, "state": _clone_state(module.state_dict())}
+
+    def deliver(self, module: torch.nn.Module) -> None:
+        """Keep the last step's parameters and load the best evaluation's into ``module``."""
+        self.last_state = _clone_state(module.state_dict())
+        module.load_state_dict(self.best["state"])
+
+    def restore_last(self, module: torch.nn.Module) -> None:
+        """Put the last step's parameters back into ``module`` (after :meth:`deliver`)."""
+        if self.last_state is not None:
+            module.load_state_dict(self.last_state)
+            self.last_state = None
+
+
+def _clone_state(state: dict) -> dict:
+    """A detached copy of a module's ``state_dict`` (a snapshot later steps do not change)."""
+    return {k: v.detach().clone() if isinstance(v, torch.Tensor) else copy.deepcopy(v) for k, v in state.items()}

@@ -7,13 +7,14 @@ import contextlib
 import math
 import signal
 import threading
+import warnings
 from pathlib import Path
 
 import torch
 
 from torchrl_wbrm.keys import CHECKPOINT
 
-__all__ = ["RESUME_COMMAND", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
+__all__ = ["RESUME_COMMAND", "QBound", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
            "non_finite_parameter"]
 
 
@@ -154,3 +155,50 @@ def non_finite_parameter(*modules) -> str | None:
             if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
                 return name
     return None
+
+
+class QBound:
+    """Q past ``factor · max|r| / (1 − γ)`` has blown up: no discounted return of rewards bounded by max|r| is that
+    large (:func:`~torchrl_wbrm.objectives.functional.q_value_bound`). The one rule of a run's Q scale: the trainer
+    warns once when a logged training figure of Q passes it (:meth:`watch`), and flags ``q_blow_up`` in the results
+    when a figure of the delivered Q does (:meth:`exceeded`).
+
+    Args:
+        reward_max: max|r| over the data.
+        gamma: the discount.
+        factor: the margin over the exact bound (:attr:`FACTOR`).
+    """
+
+    #: the margin over max|r| / (1 − γ)
+    FACTOR = 10.0
+    #: the training figures of Q the watch reads
+    FIGURES = ("q_mean", "target_value_mean", "actor_q_mean")
+
+    def __init__(self, reward_max: float, gamma: float, factor: float = FACTOR):
+        from torchrl_wbrm.objectives.functional import q_value_bound
+
+        self.reward_max, self.gamma, self.factor = float(reward_max), float(gamma), float(factor)
+        self.bound = q_value_bound(self.reward_max, self.gamma)  # the exact bound
+        self.limit = q_value_bound(self.reward_max, self.gamma, self.factor)
+        self.warned = False
+
+    def exceeded(self, value: float | None) -> bool:
+        """Whether ``|value|`` is past the limit."""
+        return value is not None and abs(value) > self.limit
+
+    def watch(self, figures: dict[str, float], step: int) -> None:
+        """Warn once (a ``UserWarning``) when a figure of :attr:`FIGURES` is past the limit, naming it and the likely
+        causes."""
+        if self.warned:
+            return
+        for name in self.FIGURES:
+            value = figures.get(name)
+            if isinstance(value, float) and math.isfinite(value) and self.exceeded(value):
+                self.warned = True
+                warnings.warn(
+                    f"|{name}| reached {abs(value):.4g} at step {step}, past {self.factor:g} · max|r| / (1 − γ) = "
+                    f"{self.limit:.4g} (max|r| = {self.reward_max:.4g}, γ = {self.gamma:g}), larger than any "
+                    "discounted return of these rewards: Q is diverging. Likely cause: Q started far from its targets "
+                    "(q.init_bias); else a learning rate too high for the bootstrap, or a target updated too fast "
+                    "(a smaller q.target_tau). This warning is given once per run.", UserWarning, stacklevel=2)
+                return

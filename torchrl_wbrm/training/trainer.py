@@ -22,19 +22,17 @@ from __future__ import annotations
 import copy
 import math
 import os
-import random
 import time
 import warnings
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from torchrl_wbrm.data import OfflineDatasets, make_replay_buffer
-from torchrl_wbrm.data.datasets import check_episodes_in_order, split_by_episode
+from torchrl_wbrm.data.datasets import split_by_episode
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.tasks import Evaluator, Task, cached_offline_datasets, get_task
 from torchrl_wbrm.evaluation import ratio_error
@@ -42,22 +40,24 @@ from torchrl_wbrm.keys import CHECKPOINT
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.modules.action_scaling import ActionScaling
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
-from torchrl_wbrm.objectives.functional import action_cloning, bootstrapped_returns, q_value_bound
-from torchrl_wbrm.ratio import (DensityRatioFitter, NonFiniteWeightsError, compute_density_ratio, episode_weights,
-                                expert_like_scores, store_density_ratio)
+from torchrl_wbrm.objectives.functional import bellman_residual
+from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError
+from torchrl_wbrm.ratio.weighting import WeightsOver, raw_density_ratio, weights_over
 from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
-from torchrl_wbrm.training.checkpoint import data_fingerprint, same_data
+from torchrl_wbrm.training.checkpoint import (checkpoint_state, data_fingerprint, restore_training_state, same_data,
+                                              set_rng_state, set_seed, write_checkpoint)
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.reporting import below_behaviour, return_fell
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.offline_value import offline_value_figures
-from torchrl_wbrm.training.selection import selection_record
-from torchrl_wbrm.training.results import atomic_write, json_safe, pause_for_test, write_json
+from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion, selection_record
+from torchrl_wbrm.training.results import json_safe, pause_for_test, write_json
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim, unique_dir
 from torchrl_wbrm.training.stops import (
+    QBound,
     RunInterrupted,
     StopNow,
     StopSignals,
@@ -66,43 +66,7 @@ from torchrl_wbrm.training.stops import (
     non_finite_parameter,
 )
 
-__all__ = ["WBRMTrainer", "default_run_dir", "set_seed", "get_rng_state", "set_rng_state"]
-
-
-def set_seed(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
-
-
-def get_rng_state() -> dict:
-    """torch's, NumPy's and Python's global random states, as tensors and primitives only (NumPy's array becomes an
-    ``int64`` tensor), so a checkpoint holding them reads with ``torch.load(weights_only=True)``. Where this process
-    has used CUDA (``device=cuda``: batches drawn, noise and random actions sampled on the device), each CUDA
-    device's generator state too (``"cuda"``)."""
-    name, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
-    numpy_state = {"name": str(name), "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
-                   "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)}
-    state = {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": random.getstate()}
-    if torch.cuda.is_initialized():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def set_rng_state(state: dict) -> None:
-    """Restore :func:`get_rng_state`'s states (NumPy's also from the tuple ``np.random.get_state()`` returns)."""
-    torch.set_rng_state(state["torch"])
-    numpy_state = state["numpy"]
-    if isinstance(numpy_state, dict):
-        numpy_state = (numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
-                       numpy_state["has_gauss"], numpy_state["cached_gaussian"])
-    np.random.set_state(numpy_state)
-    random.setstate(state["python"])
-    if "cuda" in state:
-        if not torch.cuda.is_available() or torch.cuda.device_count() < len(state["cuda"]):
-            raise RuntimeError(f"Cannot restore the random state of {len(state['cuda'])} CUDA device(s) saved with "
-                               f"this checkpoint: this machine has {torch.cuda.device_count()}.")
-        torch.cuda.set_rng_state_all(state["cuda"])
+__all__ = ["WBRMTrainer", "default_run_dir"]
 
 
 def step_schedulers(schedulers: dict) -> None:
@@ -125,11 +89,6 @@ def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Pa
     created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
     second get directories of their own)."""
     return unique_dir(Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}")
-
-
-def _clone_state(state: dict) -> dict:
-    """A detached copy of a module's ``state_dict`` (a snapshot later steps do not change)."""
-    return {k: v.detach().clone() if isinstance(v, torch.Tensor) else copy.deepcopy(v) for k, v in state.items()}
 
 
 class WBRMTrainer:
@@ -246,7 +205,7 @@ class WBRMTrainer:
                  "choose another of its settings"),
                 (reads_ratio and self.cfg.ratio.aggregate == "episode", "ratio.aggregate='episode'",
                  "use ratio.aggregate=transition"),
-                (self.cfg.q.select in self.EXPERT_LIKE_SELECTIONS, f"q.select={self.cfg.q.select}",
+                (self.cfg.q.select in EXPERT_LIKE, f"q.select={self.cfg.q.select}",
                  "use q.select=held_out_weighted_residual")):
             if needed:
                 raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: "
@@ -268,6 +227,7 @@ class WBRMTrainer:
         self.action_dim = d["action"].shape[-1]
         self.action_spec = self.task.action_spec()
         self.gamma = self.task.gamma(self.cfg.q.gamma)
+        self.q_bound = QBound(float(d["next", "reward"].abs().max()), self.gamma)  # Q's scale: the run's one rule
         # the SHA-256 of every tensor of D, S^b and S^e: a resume on different data is refused
         self.data_fingerprint = data_fingerprint(self.datasets)
 
@@ -341,14 +301,9 @@ class WBRMTrainer:
             raise ValueError(f"q.select={qc.select} chooses by the held-out Bellman residual, which "
                              f"algo={self.cfg.algo} does not fit: use q.select=last or an algo with one "
                              f"(wbrm, brm, fqi, mabo).")
-        # q.select other than last: the best evaluation's step, residual and parameters, and, once the final
-        # evaluation has loaded them into q_loss, the last step's parameters (a resume with more steps goes on there)
-        self.q_best: dict | None = None
-        self._q_last_state: dict | None = None
-        # the evaluation figure the selection minimises (None: q.select=last); an expert-like selection's data and its
-        # fallback are settled with the weights, in _build_q_buffer
-        self.q_select_figure: str | None = self.SELECTION_FIGURES.get(qc.select)
-        self.q_select_data: TensorDictBase | None = None
+        # q.select other than last: its criterion and best-so-far (training/selection.py), built on the data with
+        # the weights, in _build_q_buffer
+        self.selection: Selection | None = None
 
     def _setup_evaluation(self) -> None:
         """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
@@ -398,6 +353,8 @@ class WBRMTrainer:
                 self.state["step"] = step
                 if step % log_every == 0 or step == stop:
                     running = {k: float(v) for k, v in figures.items()}
+                    if name == "q":
+                        self.q_bound.watch(running, step)
                     self._log({f"{name}/{k}": v for k, v in running.items()}, step)
                     self.history.append({"stage": f"{name}_train", "step": step, **running})
                     bar.set_postfix_str(progress_postfix(running), refresh=False)  # fits a 120-column line
@@ -481,102 +438,57 @@ class WBRMTrainer:
         return {f"ratio_{k}": v for k, v in ratio_error(w_hat, w).items()}
 
     # ------------------------------------------------------------------ weights over D
-    @torch.no_grad()
-    def _build_q_buffer(self) -> None:
-        self.q_train_weights = None  # the weights stage 2 gave D's training rows (None: ŵ ≡ 1)
-        if self.algo.data == "expert":
-            self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
-            self.weight_stats = {}
-            return
-        d = self.q_train_data.clone()
-        source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
-        self.ratio_check = None
-        w = self._raw_weights(d, source)
-        if source == "learned":
-            self.ratio_check = self._check_ratio(w)
-        expert_like = {}
-        selecting_by_episodes = self.cfg.q.select in self.EXPERT_LIKE_SELECTIONS
-        if self.cfg.q.expert_bc_from_d or self.algo.marks_expert_like or selecting_by_episodes:
-            rows, expert_like = self._expert_like(d, w)
-            if selecting_by_episodes:
-                self._setup_expert_like_selection(d, rows)
-            if self.cfg.q.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
-                self.algo.cloning.add_expert_like(d[rows])
-            if self.algo.marks_expert_like:  # cloned by the algo's map_data (bc with baselines.bc.data=expert_like)
-                d.set("expert_like", rows.reshape(d.shape))
-        w = self._store_weights(d, w, source, "weights over D")
-        self.q_train_weights = None if source == "none" else w
-        if self.algo.map_data is not None:
-            d = self.algo.map_data(d)
-        self.q_buffer = make_replay_buffer(d, batch_size=self.cfg.q.batch_size)
-        if self.q_select_figure == "held_out_weighted_residual":  # the held-out episodes' weights, shaped as D's
-            held_out = self.q_holdout.clone()
-            self.q_holdout_weights = self._store_weights(held_out, self._raw_weights(held_out, source), source,
-                                                         "weights over the held-out episodes")
-        self.weight_stats = {**ratio_error(w), **expert_like}
-        self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
-
-    def _setup_expert_like_selection(self, d: TensorDictBase, rows: torch.Tensor) -> None:
-        """``q.select=expert_like_action`` or ``expert_like_return``: the rows of D's expert-like episodes (``rows``,
-        a mask over ``d``) that :meth:`_selection_figures` holds the actor or Q against (for the returns, checked to
-        be whole episodes in time order). With none (ŵ ≡ 1, or no episode likelier under the expert's distribution
-        than under D's), the selection falls back to ``held_out_weighted_residual``, and the results say so."""
-        if not bool(rows.any()):
-            self.q_select_figure = "held_out_weighted_residual"
-            self.q_select_data = None
-            return
-        self.q_select_data = d[rows].select("observation", "action", "episode", "next").clone()
-        if self.cfg.q.select == "expert_like_return":  # its returns run along each episode
-            check_episodes_in_order(self.q_select_data, "D's expert-like episodes (q.select=expert_like_return)")
-
-    def _store_weights(self, d: TensorDictBase, w: torch.Tensor, source: str, what: str) -> torch.Tensor:
-        """``w`` shaped as the config says (``ratio.aggregate``, ``ratio.temper``, ``ratio.clip``, ``ratio.mix``, the
-        self-normalisation), checked finite and stored in ``d`` under ``"density_ratio"`` as ``[N, 1]`` in the
-        observations' dtype; returns the stored weights. Non-finite weights stop the run, naming ``what``."""
+    def _weights_over(self, data: TensorDictBase, source: str, what: str, **kwargs) -> WeightsOver:
+        """:func:`~torchrl_wbrm.ratio.weights_over` with the run's ratio settings; non-finite weights stop the run,
+        naming ``what``."""
         rc = self.cfg.ratio
-        if rc.aggregate == "episode" and source != "none":  # each transition gets its episode's weight
-            w = episode_weights(w, d["episode"])
         try:
-            return store_density_ratio(d, w, key="density_ratio", temper=rc.temper, clip=rc.clip, mix=rc.mix,
-                                       self_normalise=rc.self_normalise and source != "none", keepdim=True,
-                                       dtype=d["observation"].dtype)
+            return weights_over(data, source=source, network=self.ratio_network, true_ratio=self.true_ratio,
+                                relative_beta=rc.relative_beta, aggregate=rc.aggregate, temper=rc.temper,
+                                clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise, device=self.device,
+                                **kwargs)
         except NonFiniteWeightsError as err:
             raise TrainingDiverged(what, 0, "density_ratio", err.value) from err
 
     def _raw_weights(self, d: TensorDictBase, source: str) -> torch.Tensor:
-        """ŵ over the rows of ``d`` before any shaping: the fitted ratio (``"learned"``), the true one
-        (``"exact"``, relative with ``ratio.relative_beta``) or 1 (``"none"``)."""
-        if source == "learned":
-            return compute_density_ratio(self.ratio_network, d, chunk_size=8192, device=self.device)
-        if source == "exact":
-            w = self.true_ratio(d.select("observation", "action"))["density_ratio"]
-            beta = self.cfg.ratio.relative_beta
-            if beta:  # the relative ratio p_e / (beta p_e + (1 - beta) p_b) of the true ratio
-                w = w / (beta * w + 1 - beta)
-            return w
-        return torch.ones(d.shape[0], 1)
+        """ŵ over the rows of ``d`` before any shaping (:func:`~torchrl_wbrm.ratio.raw_density_ratio`)."""
+        return raw_density_ratio(d, source=source, network=self.ratio_network, true_ratio=self.true_ratio,
+                                 relative_beta=self.cfg.ratio.relative_beta, device=self.device)
 
-    def _expert_like(self, d: TensorDictBase, w: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """D's expert-like episodes (:func:`~torchrl_wbrm.ratio.expert_like_episodes` of the raw ``w``). Returns their
-        row mask and the figures recorded with the weights: how many episodes and rows they hold, and, where the data
-        name D's true expert episodes, how many of them are among those, how many of those D holds, and how many of
-        them score above every other episode of D (``separable_true_episodes``: the most that any threshold on the
-        episode score could select with no other episode among them; above ``expert_like_true_episodes``, the
-        even-odds test left some that a lower threshold would have taken)."""
-        episode = d["episode"].reshape(-1)  # D's episode ids: checked before stage 1
-        score = expert_like_scores(w, episode)
-        rows = score > 1  # expert_like_episodes
-        episodes = episode[rows].unique()
-        figures = {"expert_like_episodes": int(episodes.numel()), "expert_like_rows": int(rows.sum())}
-        true_ids = self.datasets.metadata.get("behaviour_expert_episode_ids")
-        if true_ids is not None:
-            true_ids = torch.as_tensor(list(true_ids), dtype=torch.int64)
-            figures["expert_like_true_episodes"] = int(torch.isin(episodes, true_ids).sum())
-            true_rows = torch.isin(episode, true_ids)
-            figures["true_expert_episodes"] = int(episode[true_rows].unique().numel())
-            best_other = score[~true_rows].max() if bool((~true_rows).any()) else -math.inf
-            figures["separable_true_episodes"] = int(episode[true_rows & (score > best_other)].unique().numel())
-        return rows, figures
+    @torch.no_grad()
+    def _build_q_buffer(self) -> None:
+        """Stage 1's hand-over: ŵ over D's training rows, stored in stage 2's buffer (one call into
+        :mod:`torchrl_wbrm.ratio`), the fitter's verdict, D's expert-like episodes where a setting reads them, and
+        the ``q.select`` criterion on those data."""
+        self.q_train_weights = None  # the weights stage 2 gave D's training rows (None: ŵ ≡ 1)
+        self.ratio_check = None
+        self.selection = None
+        if self.algo.data == "expert":
+            self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
+            self.weight_stats = {}
+            return
+        qc = self.cfg.q
+        source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
+        over = self._weights_over(
+            self.q_train_data.clone(), source, "weights over D", fitter=self.ratio_fitter,
+            expert_like=qc.expert_bc_from_d or qc.select in EXPERT_LIKE, mark_expert_like=self.algo.marks_expert_like,
+            true_expert_episodes=self.datasets.metadata.get("behaviour_expert_episode_ids"))
+        self.ratio_check = over.verdict
+        if qc.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
+            self.algo.cloning.add_expert_like(over.data[over.expert_like])
+        self.q_train_weights = None if source == "none" else over.weights
+        d = over.data if self.algo.map_data is None else self.algo.map_data(over.data)
+        self.q_buffer = make_replay_buffer(d, batch_size=qc.batch_size)
+        if qc.select != "last":
+            held_out = lambda: self._weights_over(self.q_holdout.clone(), source,  # noqa: E731
+                                                  "weights over the held-out episodes").weights
+            rows = over.data[over.expert_like] if over.expert_like is not None else None
+            self.selection = Selection(make_criterion(
+                qc.select, held_out_weights=held_out, expert_like_rows=rows, actor=self.actor,
+                half_width=ActionScaling(self.action_spec).half_width, loss=self.algo.bellman_loss, gamma=self.gamma,
+                device=self.device))
+        self.weight_stats = over.figures
+        self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     def offline_value(self, steps: int | None = None) -> tuple[dict, dict]:
         """The current actor's value from D's training episodes alone, without the environment
@@ -589,16 +501,10 @@ class WBRMTrainer:
             weights = (w / w.mean()).to(self.q_train_weights.dtype)
         with torch.random.fork_rng():
             figures, record = offline_value_figures(
-                self.actor, self.q_train_data, self.evaluator.return_quantity(), weights=weights,
+                self.actor, self.q_train_data, self.task.return_quantity(), weights=weights,
                 steps=steps or self.cfg.eval.offline_value_steps, seed=self.cfg.seed)
         record["weights"] = None if weights is None else self.cfg.eval.offline_value_weights
         return figures, record
-
-    def _check_ratio(self, w: torch.Tensor) -> dict:
-        """Stage 1's outcome, as the fitter judges it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`, the one
-        rule) with the stored ŵ over D (raw, before shaping): its ``"flags"`` (``ratio_collapse``,
-        ``ratio_worse_than_uniform``) are the run's, with the reasons in words and the held-out losses beside them."""
-        return self.ratio_fitter.verdict(w)
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
@@ -616,14 +522,12 @@ class WBRMTrainer:
 
     def _q_eval(self, step: int) -> None:
         final = step == self.cfg.q.steps
-        criterion = self.q_select_figure
-        selecting = criterion is not None
-        if selecting and final and self._q_last_state is None:
-            self._keep_if_best(step, self._selection_figures()[criterion])
-            if self.q_best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
+        selection = self.selection
+        if selection is not None and final and selection.last_state is None:
+            selection.keep_if_best(step, self._selection_figures()[selection.figure], self.q_loss)
+            if selection.best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
                 self.history.append({"stage": "q_last", "step": step, **self.evaluate()})  # for "selection"
-                self._q_last_state = _clone_state(self.q_loss.state_dict())
-                self.q_loss.load_state_dict(self.q_best["state"])
+                selection.deliver(self.q_loss)
         try:
             if self._stop is not None:  # a signal stops a (long) evaluation at once: StopNow
                 with self._stop.immediately():
@@ -631,13 +535,13 @@ class WBRMTrainer:
             else:
                 figures = self.evaluate(final=final)
         except BaseException:
-            if selecting and final:  # checkpointed as it was trained: the resumed evaluation selects again
-                self._restore_last()
+            if selection is not None and final:  # checkpointed as it was trained: the resumed evaluation selects again
+                selection.restore_last(self.q_loss)
             raise
-        if selecting and not final:
-            self._keep_if_best(step, figures.get(criterion))
-        if selecting and final:
-            figures["selected_step"] = self.q_best["step"]
+        if selection is not None and not final:
+            selection.keep_if_best(step, figures.get(selection.figure), self.q_loss)
+        if selection is not None and final:
+            figures["selected_step"] = selection.best["step"]
         record = {"stage": "q", "step": step, **figures}
         self.history.append(record)
         bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
@@ -670,64 +574,15 @@ class WBRMTrainer:
 
     @torch.no_grad()
     def _selection_figures(self) -> dict[str, float]:
-        """The current Q's figures that ``q.select`` can minimise, from one pass over their data:
-        ``"held_out_bellman_residual"``, the mean δ² (any residual form) on the held-out D episodes; with
-        ``held_out_weighted_residual`` selecting, ``"held_out_weighted_residual"``, each row's δ² weighted by its ŵ
-        shaped as D's rows are (``mean ŵ δ²``, the squared residual stage 2 minimises); over the rows of D's
-        expert-like episodes, where there are some, with ``q.select=expert_like_action``
-        ``"expert_like_action_error"``, the actor's cloning error on them (``‖(μ(x_t) − a_t) / h‖² / m``, the
-        cloning term's, :func:`~torchrl_wbrm.objectives.functional.action_cloning`), and with
-        ``q.select=expert_like_return`` ``"expert_like_return_error"``, the mean of ``(Q(x_t, a_t) − G_t)²``,
-        ``G_t`` the episode's own discounted return from ``t``, bootstrapped at its end by the Bellman target
-        (:func:`~torchrl_wbrm.objectives.functional.bootstrapped_returns`)."""
-        loss = self.algo.bellman_loss
+        """The current Q's figures that ``q.select`` can minimise: ``"held_out_bellman_residual"``, the mean δ² (any
+        residual form) on the held-out D episodes, and the figure of the run's ``q.select`` criterion
+        (:mod:`torchrl_wbrm.training.selection`)."""
         held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
-        _, figures = loss.value_loss(held_out.to(self.device))
-        delta2 = figures["td_error"]
-        out = {"held_out_bellman_residual": delta2.mean().item()}
-        if self.q_select_figure == "held_out_weighted_residual":
-            weights = self.q_holdout_weights.to(delta2.device).reshape(delta2.shape)
-            out["held_out_weighted_residual"] = (weights * delta2).mean().item()
-        if self.q_select_figure == "expert_like_action_error":
-            d = self.q_select_data
-            training = self.actor.training
-            self.actor.eval()  # as evaluated, also where the final selection scores the last step
-            try:
-                mu = self.actor(d.select("observation").to(self.device))["action"]
-            finally:
-                self.actor.train(training)
-            half_width = ActionScaling(self.action_spec).half_width
-            out["expert_like_action_error"] = action_cloning(mu, d["action"].to(mu), half_width.to(mu)).item()
-        if self.q_select_figure == "expert_like_return_error":
-            d = self.q_select_data
-            q, y = loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
-            g = bootstrapped_returns(d["next", "reward"].reshape(-1).to(y), y.reshape(-1), d["episode"].reshape(-1),
-                                     self.gamma)
-            out["expert_like_return_error"] = (q.reshape(-1) - g).pow(2).mean().item()
+        squared = bellman_residual(*self.algo.bellman_loss.bellman_error(held_out.to(self.device))).pow(2)
+        out = {"held_out_bellman_residual": squared.mean().item()}
+        if self.selection is not None:
+            out[self.selection.figure] = self.selection.criterion.score(squared)
         return out
-
-    #: each q.select choice that selects and the evaluation figure it minimises (the expert-like ones fall back to
-    #: ``held_out_weighted_residual`` where D has no expert-like episode)
-    SELECTION_FIGURES = {"held_out_residual": "held_out_bellman_residual",
-                         "held_out_weighted_residual": "held_out_weighted_residual",
-                         "expert_like_action": "expert_like_action_error",
-                         "expert_like_return": "expert_like_return_error"}
-    #: the q.select choices scored on D's expert-like episodes
-    EXPERT_LIKE_SELECTIONS = ("expert_like_action", "expert_like_return")
-
-    def _keep_if_best(self, step: int, residual: float | None) -> None:
-        """``q.select`` (not ``last``): keep the current parameters if ``residual`` is the lowest so far (the
-        earliest wins a tie; a non-finite residual never does)."""
-        if residual is None or not math.isfinite(residual):
-            return
-        if self.q_best is None or residual < self.q_best["residual"]:
-            self.q_best = {"step": step, "residual": residual, "state": _clone_state(self.q_loss.state_dict())}
-
-    def _restore_last(self) -> None:
-        """Put the last step's parameters back into ``q_loss`` (after a selection loaded an earlier evaluation's)."""
-        if self._q_last_state is not None:
-            self.q_loss.load_state_dict(self._q_last_state)
-            self._q_last_state = None
 
     # ------------------------------------------------------------------ run
     def run(self, *, until: int | None = None) -> dict | None:
@@ -768,7 +623,8 @@ class WBRMTrainer:
             self._build_q_buffer()
         if self.state["stage"] == "done" and self.state["step"] < self.cfg.q.steps:
             self.state["stage"] = "q"  # resumed with a larger budget: continue training
-            self._restore_last()  # from the last step's parameters, not a selected earlier evaluation's
+            if self.selection is not None:  # from the last step's parameters, not a selected earlier evaluation's
+                self.selection.restore_last(self.q_loss)
         if self.state["stage"] == "q":
             done = self._run_stage(
                 "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
@@ -782,26 +638,21 @@ class WBRMTrainer:
             self._q_eval(self.cfg.q.steps)
         return self.results()
 
-    #: |Q̂| beyond this many times r_max / (1 − γ) is flagged as a blow-up (Q* lies within r_max / (1 − γ)).
-    BLOW_UP_FACTOR = 10.0
-
     def _q_scale(self, final: dict) -> dict:
         """The largest |mean Q̂| the run reports (final evaluation, last training figures) and, for every algo with a
         Q, the delivered Q̂'s mean over D's training rows (``"q_mean_data"``: the algos on torchrl's losses report no
-        Q figure of their own), against r_max / (1 − γ)."""
-        r_max = float(self.datasets.transitions[:]["next", "reward"].abs().max())
-        bound = q_value_bound(r_max, self.gamma)
+        Q figure of their own), against the run's Q bound (:class:`~torchrl_wbrm.training.stops.QBound`)."""
         train = [r for r in self.history if r["stage"] == "q_train"]
         values = {k: v for k, v in final.items() if k.startswith("q_mean")}
         if self.algo.q_value is not None and self.algo.data != "expert":
             values["q_mean_data"] = self._q_mean_over_d()
         if train:
-            values.update({f"train_{k}": v for k, v in train[-1].items() if k in ("q_mean", "target_value_mean", "actor_q_mean")})
+            values.update({f"train_{k}": v for k, v in train[-1].items() if k in QBound.FIGURES})
         values = {k: abs(float(v)) for k, v in values.items() if isinstance(v, (int, float)) and math.isfinite(v)}
         largest = max(values.values(), default=None)
         return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
-                "bound": bound, "factor": self.BLOW_UP_FACTOR,
-                "blow_up": largest is not None and largest > q_value_bound(r_max, self.gamma, self.BLOW_UP_FACTOR)}
+                "bound": self.q_bound.bound, "factor": self.q_bound.factor,
+                "blow_up": self.q_bound.exceeded(largest)}
 
     @torch.no_grad()
     def _q_mean_over_d(self, chunk: int = 8192) -> float:
@@ -859,7 +710,8 @@ class WBRMTrainer:
             if best:
                 results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
         results["selection"] = selection_record(  # delivered, best and last by their online returns
-            self.history, self.cfg.q.select, self.q_select_figure, episodes=self.cfg.eval.episodes,
+            self.history, self.cfg.q.select, None if self.selection is None else self.selection.figure,
+            episodes=self.cfg.eval.episodes,
             train_episodes=self.cfg.eval.train_episodes, steps=self.cfg.q.steps)
         if self.cfg.eval.offline_value:  # the delivered actor's value by FQE on D: no environment
             figures, results["offline_value"] = self.offline_value()
@@ -898,23 +750,11 @@ class WBRMTrainer:
         return copy.deepcopy(self._config_record)
 
     def state_dict(self) -> dict:
-        sd = {
-            "state": dict(self.state),
-            "history": copy.deepcopy(self.history),
-            "rng": get_rng_state(),
-            "q_loss": self.q_loss.state_dict(),
-            "optimisers": {name: optimiser.state_dict() for name, optimiser in self.optimisers.items()},
-            "schedulers": {name: scheduler.state_dict() for name, scheduler in self.schedulers.items()},
-            "data_fingerprint": self.data_fingerprint,
-            "config": self.config_record(),
-            "q_best": self.q_best,
-            "q_last": self._q_last_state,
-        }
-        if self.ratio_network is not None:
-            fitter = self.ratio_fitter.state_dict()
-            sd.update(ratio_loss=fitter["loss_module"], ratio_optim=fitter["optimizer"], ratio_best=fitter["best"],
-                      ratio_steps=fitter["num_steps"])
-        return sd
+        """The checkpoint's content (:func:`~torchrl_wbrm.training.checkpoint.checkpoint_state`)."""
+        return checkpoint_state(state=self.state, history=self.history, q_loss=self.q_loss, optimisers=self.optimisers,
+                                schedulers=self.schedulers, data_fingerprint=self.data_fingerprint,
+                                config=self.config_record(), selection=self.selection,
+                                ratio_fitter=self.ratio_fitter if self.ratio_network is not None else None)
 
     def save_checkpoint(self) -> Path:
         """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
@@ -926,7 +766,7 @@ class WBRMTrainer:
         state = self.state_dict()
         if self._claim is not None:  # the directory this run claimed, not one made anew under its name
             self._claim.check_present()
-        atomic_write(path, lambda f: torch.save(state, f), tmp=path.with_suffix(".tmp"))  # fsynced, then renamed
+        write_checkpoint(path, state)
         self._checkpoint_state = dict(self.state)
         return path
 
@@ -943,23 +783,15 @@ class WBRMTrainer:
         self.state = sd["state"]
         self.history = sd["history"]
         self._checkpoint_state = dict(self.state)
-        self.q_loss.load_state_dict(sd["q_loss"])
-        self.q_best, self._q_last_state = sd.get("q_best"), sd.get("q_last")
-        # checkpoints written before the algos refactor hold "value_optim" and "actor_optim"
-        optimisers = sd.get("optimisers") or {"value": sd["value_optim"], "actor": sd["actor_optim"]}
-        for name, optimiser in self.optimisers.items():
-            if name in optimisers:
-                optimiser.load_state_dict(optimisers[name])
-        for name, scheduler in self.schedulers.items():
-            scheduler.load_state_dict(sd["schedulers"][name])
-        if self.ratio_network is not None:
-            self.ratio_fitter.load_state_dict({"loss_module": sd["ratio_loss"], "optimizer": sd["ratio_optim"],
-                                               "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
+        restore_training_state(sd, q_loss=self.q_loss, optimisers=self.optimisers, schedulers=self.schedulers,
+                               ratio_fitter=self.ratio_fitter if self.ratio_network is not None else None)
         if self.state["stage"] != "ratio":
             logger, self.logger = self.logger, None  # the weights were logged when stage 2 first started
             try:
                 self._build_q_buffer()
             finally:
                 self.logger = logger
+            if self.selection is not None:
+                self.selection.best, self.selection.last_state = sd.get("q_best"), sd.get("q_last")
         set_rng_state(sd["rng"])
         self._resume_sd = None  # restored: free the copy
