@@ -411,3 +411,33 @@ def test_one_recipe_run_prepares_its_config_once(tmp_path, monkeypatch):
     cli.wbrm_offline()
     assert json.loads((tmp_path / "run" / "results.json").read_text())["status"] == "finished"
     assert counts == {"tasks built": 1, "validations": 1}
+
+
+def test_a_multi_seed_recipe_run_prepares_its_config_once(tmp_path, monkeypatch):
+    """``seeds=[0,1]``: the config is validated once for both seeds (the Hydra callback's ``prepare_config``); each
+    seed's trainer runs ``PreparedConfig.for_seed`` and builds only its own task (it holds the seed's data)."""
+    from collections import Counter
+
+    from torchrl_wbrm import cli
+    from torchrl_wbrm.tasks.base import Task
+    from torchrl_wbrm.training import config as config_module
+
+    counts = Counter()
+    init, choices = Task.__init__, config_module._choices
+
+    def counting_init(self, env):
+        counts["tasks built"] += 1
+        init(self, env)
+
+    def counting_choices():  # read once per validation
+        counts["validations"] += 1
+        return choices()
+
+    monkeypatch.setattr(Task, "__init__", counting_init)
+    monkeypatch.setattr(config_module, "_choices", counting_choices)
+    monkeypatch.setattr(sys, "argv", ["wbrm-offline", *TINY, "logger=none", "plots=false", "threads=1", "seeds=[0,1]",
+                                      f"hydra.run.dir={tmp_path / 'run'}"])
+    cli.wbrm_offline()
+    results = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert results["status"] == "finished" and [r["seed"] for r in results["runs"]] == [0, 1]
+    assert counts == {"tasks built": 3, "validations": 1}  # the run's task, then one per seed

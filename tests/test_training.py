@@ -53,7 +53,7 @@ def test_shape_weights_known_answers():
         ({"ratio": {"bounds": [2.0, 10.0]}}, "ratio.bounds"),
         ({"ratio": {"temper": 1.5}}, "ratio.temper"),
         ({"q": {"steps": 0}}, "q.steps must be > 0"),
-        ({"env": {"kind": "mountain_car"}, "ratio": {"source": "exact"}}, "needs an LQR env"),
+        ({"env": {"kind": "mountain_car"}, "ratio": {"source": "exact"}}, "needs an env whose exact density ratio is known"),
     ],
 )
 def test_config_errors_name_the_setting(override, match):

@@ -101,7 +101,7 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     # here, before any data are collected, when the app runs without it
     prepared = take_prepared(run_dir) or prepare_config(cfg)
     if cfg.seeds:
-        return _run_seeds(cfg, run_dir)
+        return _run_seeds(prepared, cfg, run_dir)
     try:
         trainer = _trainer(prepared, run_dir, cfg)
         trainer.logger = make_logger(
@@ -163,7 +163,7 @@ def _stopped_on(err: OSError, cfg, run_dir: Path) -> None:
     sys.exit(1)
 
 
-def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
+def _run_seeds(prepared, cfg: DictConfig, run_dir: Path) -> None:
     """``seeds=[...]``: the seeds trained together in one process (:func:`torchrl_wbrm.training.seeds.run_seeds`), each
     in ``run_dir/seed<s>``; ``run_dir/results.json`` holds them all and the aggregate."""
     from torchrl_wbrm.training.seeds import run_seeds, summarise_seeds
@@ -172,7 +172,7 @@ def _run_seeds(cfg: DictConfig, run_dir: Path) -> None:
               f"continues from it, the others run again)")
     try:
         # each seed's trainer makes its logger in its folder (cfg.logger), after its own checks
-        results = run_seeds(cfg, run_dir, resume=bool(cfg.resume))
+        results = run_seeds(prepared, run_dir, resume=bool(cfg.resume))
     except RunInterrupted as err:  # a seed trained one at a time stopped at a step, after a checkpoint
         print(f"{err.signal_name} received: seed {err.run_dir.name.removeprefix('seed')} stopped in stage "
               f"{err.stage!r} at step {err.step}, checkpoint written to {err.run_dir / 'checkpoint.pt'}. {resume}",

@@ -40,6 +40,9 @@ class AlgoSpec:
             (DDPG).
         loss, reference: one line each (Markdown) for the docs' table.
         loss_title: the title of the training-loss panel of ``training_curve.png``.
+        clones_expert: its actor has the cloning term of S^e's actions (``q.expert_bc_alpha``), which
+            ``q.expert_bc_weighted_d`` and ``q.expert_bc_from_d`` extend; for any other algo those settings are
+            refused (:func:`~torchrl_wbrm.training.config.validate_config`).
     """
 
     name: str
@@ -52,6 +55,7 @@ class AlgoSpec:
     loss: str = ""
     reference: str = ""
     loss_title: str = ""
+    clones_expert: bool = False
 
     def __call__(self, context):
         return self.build(context)
@@ -67,7 +71,7 @@ ALGOS: dict[str, AlgoSpec] = {}
 
 def register_algo(name: str, *, config: type | None = None, validate=None, fits_ratio=False,
                   bellman_residual: bool = False, critic_layer_norm: bool = False, loss: str = "",
-                  reference: str = "", loss_title: str = "") -> Callable:
+                  reference: str = "", loss_title: str = "", clones_expert: bool = False) -> Callable:
     """Decorator: register ``build(context) -> Algo`` under ``name`` (returns the builder unchanged).
 
     ``config`` must be a dataclass (its defaults are the ``algo/<name>`` node's); a name registered twice is an error.
@@ -81,7 +85,7 @@ def register_algo(name: str, *, config: type | None = None, validate=None, fits_
         if name in ALGOS:
             raise ValueError(f"register_algo: the algo {name!r} is registered already ({ALGOS[name].build.__module__}).")
         ALGOS[name] = AlgoSpec(name, build, config, validate, fits_ratio, bellman_residual, critic_layer_norm,
-                               loss, reference, loss_title or f"{name}: training losses")
+                               loss, reference, loss_title or f"{name}: training losses", clones_expert=clones_expert)
         return build
 
     return decorator

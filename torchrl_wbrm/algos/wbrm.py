@@ -5,7 +5,7 @@ from torchrl_wbrm.algos.base import Algo, AlgoContext, bellman_residual_algo
 from torchrl_wbrm.algos.registry import register_algo
 
 
-@register_algo("wbrm", fits_ratio=True, bellman_residual=True,
+@register_algo("wbrm", fits_ratio=True, bellman_residual=True, clones_expert=True,
                loss="`WeightedBellmanLoss`, weighted by the stage-1 ŵ", reference="the paper",
                loss_title="stage 2: weighted Bellman residual")
 def build_wbrm(ctx: AlgoContext) -> Algo:

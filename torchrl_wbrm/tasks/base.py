@@ -132,6 +132,16 @@ class Task(ABC):
         self.datasets: OfflineDatasets | None = None
 
     # ------------------------------------------------------------------ before any data
+    def check_config(self, cfg) -> None:
+        """The task's hook in a run's one validation (:func:`~torchrl_wbrm.training.config.prepare_config`): what this
+        env allows of the run's config ``cfg`` (a resolved :class:`~torchrl_wbrm.training.config.WBRMConfig`), and
+        its data settings (:meth:`validate`); ``ValueError`` naming the setting. By default: the exact ratio
+        (``ratio.source=exact``) needs a task that knows it (:attr:`has_exact_ratio`)."""
+        if cfg.ratio.source == "exact" and not self.has_exact_ratio:
+            raise ValueError(f"ratio.source='exact' needs an env whose exact density ratio is known (LQR), got "
+                             f"env.kind={self.kind!r}.")
+        self.validate()
+
     def validate(self) -> None:
         """Check the env's data settings before any data are collected; ``ValueError`` naming the key."""
 

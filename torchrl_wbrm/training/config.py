@@ -1,11 +1,25 @@
 """Structured (dataclass) Hydra configs of the recipes: a misspelt key or a bad type fails at start.
 
 ``register_configs()`` stores the schemas in Hydra's ``ConfigStore``; the YAML files under ``configs/`` name
-them first in their defaults list, so every value they set is checked against the schema. Values are checked
-again by :func:`validate_config` (allowed names, ranges), which names the setting and what is allowed.
+them first in their defaults list, so every value they set is checked against the schema.
+
+A run's config is prepared once, by :func:`prepare_config`, for one seed or many (``seeds``; each seed's run is
+:meth:`PreparedConfig.for_seed`, not prepared again). Which check goes where:
+
+* a key or a type: the schema (:func:`merge_config`: an unknown key is named with the nearest setting);
+* a value of the run's settings (names from a fixed set, ranges, what two settings allow together):
+  :func:`validate_config`, with the run as a whole (seeds, sizes, threads, the device, the logger, finite numbers)
+  in :func:`~torchrl_wbrm.training.validation.validate_run_settings`;
+* what the env allows: its task's hook, :meth:`~torchrl_wbrm.tasks.Task.check_config` (its data settings, its
+  ground truth);
+* what an algo allows: its registration (:class:`~torchrl_wbrm.algos.AlgoSpec`: ``validate`` for its
+  ``baselines.<name>`` settings, the flags for the shared settings it reads);
+* the data on disk, the run directory and a resume: before anything is written, by
+  :meth:`~torchrl_wbrm.tasks.Task.check_data` and :func:`~torchrl_wbrm.training.resume.check_run_request`.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -519,6 +533,13 @@ class PreparedConfig(NamedTuple):
     config: WBRMConfig
     task: Task
 
+    def for_seed(self, seed: int) -> "PreparedConfig":
+        """The run of one ``seed`` of this config (``seed`` set, ``seeds`` null), validated already: every entry of
+        ``seeds`` was checked with the config. A task holds one run's data, so the seed's task is built anew."""
+        config = copy.deepcopy(self.config)
+        config.seed, config.seeds = int(seed), None
+        return PreparedConfig(config, get_task(config.env))
+
 
 def prepare_config(cfg) -> PreparedConfig:
     """The one preparation of a run's config: merged on the schema (:func:`merge_config`), its env's task built,
@@ -526,7 +547,7 @@ def prepare_config(cfg) -> PreparedConfig:
     merged = merge_config(cfg)
     task = get_task(merged.env)
     config = resolve_defaults(merged, task)
-    validate_config(config, task)
+    _check_resolved(config, task)
     return PreparedConfig(config, task)
 
 
@@ -545,9 +566,13 @@ def validate_config(cfg, task: Task | None = None) -> None:
     """Check values a type cannot: names from a fixed set, ranges. Raises ``ValueError`` naming the setting.
 
     Settings left null are checked as :func:`resolve_defaults` fills them. ``task``: the env's task, when built
-    already (else built here)."""
+    already (else built here). A run does not call it: :func:`prepare_config` is a run's one validation entry."""
     task = task if task is not None else get_task(cfg.env)
-    cfg = resolve_defaults(cfg, task)
+    _check_resolved(resolve_defaults(cfg, task), task)
+
+
+def _check_resolved(cfg: WBRMConfig, task: Task) -> None:
+    """:func:`validate_config`'s checks of a config resolved already, with its env's task's and its algo's hooks."""
     for key, allowed in _choices().items():
         value = _get(cfg, key)
         if value not in allowed:
@@ -603,20 +628,21 @@ def validate_config(cfg, task: Task | None = None) -> None:
         if not cfg.q.expert_bc_alpha:
             raise ValueError(f"{key}=true adds {what} to the actor's S^e cloning term, which is off "
                              f"(q.expert_bc_alpha={cfg.q.expert_bc_alpha}): set q.expert_bc_alpha > 0.")
-        if cfg.algo not in ("wbrm", "brm"):
-            raise ValueError(f"{key}=true configures the actor of wbrm and brm, not algo={cfg.algo}.")
+        if not ALGOS[cfg.algo].clones_expert:
+            cloning = [name for name, spec in ALGOS.items() if spec.clones_expert]
+            raise ValueError(f"{key}=true configures the S^e cloning term of the actor of {' and '.join(cloning)}, "
+                             f"not algo={cfg.algo}.")
     if not 0 < cfg.q.target_tau <= 1:
         raise ValueError(f"q.target_tau must lie in (0, 1], got {cfg.q.target_tau}.")
     for spec in ALGOS.values():  # every algo's own settings (a toy algo registered late may have none here)
         if spec.validate is not None and hasattr(cfg.baselines, spec.name):
             spec.validate(getattr(cfg.baselines, spec.name), f"baselines.{spec.name}")
-    if cfg.ratio.source == "exact" and not task.has_exact_ratio:
-        raise ValueError(f"ratio.source='exact' needs an LQR env (the exact ratio is known there), got env.kind={cfg.env.kind!r}.")
     if cfg.seeds is not None:
         seeds = list(cfg.seeds)
         if not seeds or len(set(seeds)) != len(seeds) or not all(isinstance(s, int) and s >= 0 for s in seeds):
             raise ValueError(f"seeds must be a non-empty list of distinct seeds >= 0 (or null), got {seeds}.")
-    validate_run_settings(cfg, task)  # seeds, sizes, threads, device, finite numbers, the exact return's scope
+    validate_run_settings(cfg)  # seeds, sizes, threads, device, finite numbers
+    task.check_config(cfg)  # the env's hook: its data settings and what its ground truth supports
 
 
 #: what :func:`register_configs` last stored: the ConfigStore and the registered algos (name and spec object)

@@ -23,7 +23,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from torchrl_wbrm.evaluation.stats import mean_ci
-from torchrl_wbrm.training.config import WBRMConfig, config_as_dict, to_config
+from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.results import json_safe, write_json
 from torchrl_wbrm.training.trainer import WBRMTrainer
 
@@ -63,7 +63,7 @@ def aggregate(runs: list[dict]) -> dict:
     return json_safe(out)
 
 
-def _combined(cfg: WBRMConfig, runs: list[dict], *, timing: dict) -> dict:
+def _combined(cfg: WBRMConfig, runs: list[dict], *, timing: dict, task=None) -> dict:
     statuses = [r.get("status", "finished") for r in runs]
     return json_safe({
         "status": "finished" if all(s == "finished" for s in statuses) else "diverged",
@@ -75,7 +75,7 @@ def _combined(cfg: WBRMConfig, runs: list[dict], *, timing: dict) -> dict:
         "aggregate": {"final": aggregate(runs), "level": 0.95},
         "runs": runs,
         "timing": timing,
-        "config": config_as_dict(cfg),
+        "config": config_as_dict(cfg, task),
     })
 
 
@@ -113,7 +113,9 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
     """Train ``cfg.seeds`` in one process, one after another, into ``run_dir`` (``run_dir/seed<s>`` per seed) and
     write ``run_dir/results.json`` (every seed's results under ``"runs"``, the aggregate under ``"aggregate"``).
 
-    Each seed is a :class:`~torchrl_wbrm.training.trainer.WBRMTrainer` of :func:`seed_config`, run by its own loop:
+    ``cfg`` is prepared once (:func:`~torchrl_wbrm.training.config.prepare_config`; or given prepared, as the recipe
+    does); each seed is a :class:`~torchrl_wbrm.training.trainer.WBRMTrainer` of its
+    :meth:`~torchrl_wbrm.training.config.PreparedConfig.for_seed`, run by its own loop:
     what it writes in its folder is what a separate run with that seed writes. ``cfg.overwrite``: an earlier run in
     ``run_dir`` is replaced whole (its ``results.json`` and every ``seed<s>/`` folder's outputs, the seeds this run
     does not train included). ``resume``: continue an interrupted multi-seed run in ``run_dir``: its finished seeds
@@ -122,7 +124,8 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
     """
     from torchrl_wbrm.training.rundir import clear_run_outputs, holds_run
 
-    cfg = to_config(cfg)
+    prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)  # once, for every seed
+    cfg = prepared.config
     if not cfg.seeds:
         raise ValueError("run_seeds needs cfg.seeds, a list of seeds.")
     run_dir = Path(run_dir)
@@ -138,7 +141,7 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
         if resume and seed not in checkpointed:  # an unfinished seed without a checkpoint runs anew
             clear_run_outputs(run_dir / f"seed{seed}")
         t0 = time.perf_counter()
-        trainer = WBRMTrainer(seed_config(cfg, seed), run_dir / f"seed{seed}", progress=progress,
+        trainer = WBRMTrainer(prepared.for_seed(seed), run_dir / f"seed{seed}", progress=progress,
                               logger=_logger_for(loggers, seed), resume=seed in checkpointed)
         t1 = time.perf_counter()
         runs_by_seed[seed] = trainer.run()
@@ -146,7 +149,7 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
         timing["training"] += time.perf_counter() - t1
     runs = [runs_by_seed[int(s)] for s in cfg.seeds]
     timing["total"] = time.perf_counter() - start
-    results = _combined(cfg, runs, timing=timing)
+    results = _combined(cfg, runs, timing=timing, task=prepared.task)
     results["wall_seconds"] = timing["total"]
     write_json(run_dir / "results.json", results)
     return results

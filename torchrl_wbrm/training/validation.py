@@ -1,6 +1,6 @@
-"""The checks of a run's settings that a type cannot make, all before any data are collected: finite numbers, seeds,
-sizes, threads, the device, the logger and what the env's task supports (:func:`validate_run_settings`, called by
-:func:`~torchrl_wbrm.training.config.validate_config`).
+"""The checks of a run's settings as a whole that a type cannot make, all before any data are collected: finite
+numbers, seeds, sizes, threads, the device and the logger (:func:`validate_run_settings`, called by
+:func:`~torchrl_wbrm.training.config.validate_config`; which check goes where: :mod:`torchrl_wbrm.training.config`).
 """
 from __future__ import annotations
 
@@ -9,8 +9,6 @@ import os
 from dataclasses import fields, is_dataclass
 
 import torch
-
-from torchrl_wbrm.tasks import get_task
 
 __all__ = ["SEED_LIMIT", "check_device", "check_logger", "check_seeds", "check_writable_folder",
            "validate_run_settings"]
@@ -120,10 +118,9 @@ def check_writable_folder(path, key: str) -> None:
                              f"write.")
 
 
-def validate_run_settings(cfg, task=None) -> None:
+def validate_run_settings(cfg) -> None:
     """The checks :func:`~torchrl_wbrm.training.config.validate_config` adds for the run as a whole, all before any
-    data are collected: finite numbers, seeds, sizes, threads, the device, and what the exact LQR return supports.
-    ``task``: the env's task, when built already (else built here)."""
+    data are collected: finite numbers, seeds, sizes, threads, the device and the logger."""
     for key, value in _leaves(cfg):
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"{key}={value!r}: every number in the config must be finite.")
@@ -143,4 +140,3 @@ def validate_run_settings(cfg, task=None) -> None:
     check_logger(cfg.logger)
     if cfg.data_cache:
         check_writable_folder(cfg.data_cache, "data_cache")
-    (task if task is not None else get_task(cfg.env)).validate()  # the env's data settings, and what its ground truth supports
