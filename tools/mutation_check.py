@@ -125,6 +125,19 @@ MUTATIONS = [
         "        if i % qc.actor_delay == 0 and loss.has_actor:", "        if False:",
         [f"{LEARNING}[wbrm]", f"{LEARNING}[brm]"],
     ),
+    # ---------------------------------------------------------------- the seeds in one process
+    Mutation(
+        "seeds_one_seed", "seeds=[...] trains every seed with the first seed's data and initialisation",
+        "torchrl_wbrm/training/config.py",
+        "config.seed, config.seeds = int(seed), None", "config.seed, config.seeds = int(self.config.seeds[0]), None",
+        ["tests/test_seeds.py::test_recipe_seeds_equal_separate_runs"],
+    ),
+    Mutation(
+        "aggregate_one_seed", "the seeds' aggregate is the first seed's figures alone",
+        "torchrl_wbrm/training/seeds.py",
+        'values = [r["final"].get(key) for r in finished]', 'values = [r["final"].get(key) for r in finished[:1]]',
+        ["tests/test_seeds.py::test_recipe_seeds_equal_separate_runs"],
+    ),
 ]
 
 
