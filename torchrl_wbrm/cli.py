@@ -19,6 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_wbrm.keys import RESULTS
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs
@@ -122,7 +123,7 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
         _stopped_on(err, cfg, run_dir)
     results["wall_seconds"] = time.perf_counter() - start
     try:
-        write_json(run_dir / "results.json", results)
+        write_json(run_dir / RESULTS, results)
     except OSError as err:
         _stopped_on(err, cfg, run_dir)
     if results.get("status") == "diverged":

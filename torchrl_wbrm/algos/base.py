@@ -12,6 +12,7 @@ from torchrl.data import Bounded
 from torchrl.modules import ValueOperator
 from torchrl.objectives import LossModule
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.modules import make_deterministic_actor, make_discrete_q_network, make_q_network
 from torchrl_wbrm.objectives import WeightedBellmanLoss
 from torchrl_wbrm.objectives._fast import NetworkCall
@@ -223,7 +224,7 @@ class ExpertCloning:
     """
 
     def __init__(self, actor, expert_samples: TensorDictBase, action_spec: Bounded, *, alpha: float,
-                 batch_size: int, weighted_d: bool = False, weight_key: str = "density_ratio") -> None:
+                 batch_size: int, weighted_d: bool = False, weight_key: str = DENSITY_RATIO) -> None:
         from torchrl_wbrm.data import make_replay_buffer
 
         if not alpha > 0:

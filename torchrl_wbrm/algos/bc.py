@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import BCLoss
 
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
 from torchrl_wbrm.algos.base import Algo, AlgoContext, adam, descend, deterministic_actor
 from torchrl_wbrm.algos.registry import register_algo
 from torchrl_wbrm.objectives.functional import action_cloning
@@ -56,7 +57,7 @@ def _fits_ratio(cfg) -> bool:
 
 
 def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
-                expert_episode_ids: list[int] | None = None, weight_key: str = "density_ratio") -> TensorDictBase:
+                expert_episode_ids: list[int] | None = None, weight_key: str = DENSITY_RATIO) -> TensorDictBase:
     """The rows ``baselines.bc.data`` clones, beside S^e: ``expert`` S^e's ``"observation"`` and ``"action"``,
     ``behaviour`` D's (with its stored weights under ``weight_key`` and its ``"episode"`` ids). Returns S^e's rows
     after D's (``"union"``, ``"weighted"``), D's rows marked ``"expert_like"`` by the trainer (``"expert_like"``) or
@@ -83,9 +84,9 @@ def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
     if data == "oracle":
         if expert_episode_ids is None:
             raise ValueError(NO_EXPERT_IDS)
-        if "episode" not in behaviour.keys():
+        if EPISODE not in behaviour.keys():
             raise ValueError("baselines.bc.data=oracle needs D's episode ids (key 'episode'), which these data lack.")
-        d = d[torch.isin(behaviour["episode"], torch.as_tensor(list(expert_episode_ids), dtype=torch.int64))]
+        d = d[torch.isin(behaviour[EPISODE], torch.as_tensor(list(expert_episode_ids), dtype=torch.int64))]
     elif data == "expert_like":
         if "expert_like" not in behaviour.keys():
             raise ValueError("baselines.bc.data=expert_like clones the rows the trainer marks 'expert_like' after "
@@ -136,7 +137,7 @@ def build_bc(ctx: AlgoContext) -> Algo:
         def step(batch: TensorDictBase, i: int) -> dict:
             with loss.actor_network_params.to_module(actor):
                 mu = actor(batch.select(*actor.in_keys))["action"]
-            loss_bc = action_cloning(mu, batch["action"], half_width, batch["density_ratio"])
+            loss_bc = action_cloning(mu, batch["action"], half_width, batch[DENSITY_RATIO])
             descend(loss_bc, optimisers["actor"])
             return {"loss_bc": loss_bc.detach()}
 

@@ -29,6 +29,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.sampling import STATE_ACTION_KEYS, PairedSampler
 
 __all__ = [
@@ -114,7 +115,7 @@ def collect_transitions(
     data = torch.cat(batches, 0)[:total_frames]
     episode = data.get(("collector", "traj_ids")).clone()
     data = data.exclude("collector")
-    data.set("episode", episode + episode_offset)
+    data.set(EPISODE, episode + episode_offset)
     missing = [k for k in TRANSITION_KEYS if k not in data.keys(True)]
     if missing:
         raise KeyError(f"The collected data lacks {missing}: does the env declare them in its specs?")
@@ -130,14 +131,14 @@ def split_by_episode(
     """
     if not 0.0 < fraction < 1.0:
         raise ValueError(f"fraction must lie in (0, 1), got {fraction}.")
-    if "episode" not in data.keys():
+    if EPISODE not in data.keys():
         raise KeyError("split_by_episode needs an 'episode' entry (collect_transitions writes it).")
-    episodes = torch.unique(data["episode"])
+    episodes = torch.unique(data[EPISODE])
     if len(episodes) < 2:
         raise ValueError(f"Need at least 2 episodes to split, got {len(episodes)}.")
     perm = episodes[torch.randperm(len(episodes), generator=generator)]
     n_part = min(max(1, round(fraction * len(episodes))), len(episodes) - 1)
-    in_part = torch.isin(data["episode"], perm[:n_part])
+    in_part = torch.isin(data[EPISODE], perm[:n_part])
     return data[~in_part], data[in_part]
 
 
@@ -158,7 +159,7 @@ def check_episodes_in_order(data: TensorDictBase, what: str) -> None:
         ...
         ValueError: D: episode 0's rows are not in time order (row 0's ("next", "observation") is not row 1's "observation"); each episode's rows must be contiguous and in the order they were collected.
     """
-    episode = data["episode"].reshape(-1)
+    episode = data[EPISODE].reshape(-1)
     starts = torch.ones_like(episode, dtype=torch.bool)
     starts[1:] = episode[1:] != episode[:-1]
     runs = episode[starts]
@@ -281,8 +282,8 @@ class OfflineDatasets:
         the dataset (``metadata["behaviour_dataset"]``, where a reader records it) and the minimum.
         """
         meta = dict(metadata or {})
-        if "episode" in behaviour.keys():
-            episodes = int(torch.unique(behaviour["episode"]).numel())
+        if EPISODE in behaviour.keys():
+            episodes = int(torch.unique(behaviour[EPISODE]).numel())
             needed = min_behaviour_episodes(ratio_fraction)
             if episodes < needed:
                 name = meta.get("behaviour_dataset")
@@ -296,7 +297,7 @@ class OfflineDatasets:
         meta.setdefault("ratio_fraction", ratio_fraction)
         return cls.from_tensordicts(
             transitions,
-            behaviour_samples.select(*STATE_ACTION_KEYS, "episode", strict=False),
+            behaviour_samples.select(*STATE_ACTION_KEYS, EPISODE, strict=False),
             expert,
             metadata=meta,
             storage=storage,
@@ -508,8 +509,8 @@ def check_finite(td: TensorDictBase, where: str) -> None:
     if found is None:
         return
     key, row, value = found
-    if "episode" in td.keys():
-        episodes = td.get("episode")
+    if EPISODE in td.keys():
+        episodes = td.get(EPISODE)
         episode = int(episodes[row])
         step = int((episodes[:row] == episode).sum())
         where_in = f"episode {episode}, step {step} (row {row})"
@@ -637,9 +638,9 @@ def episode_returns(data: TensorDictBase, *, gamma: float = 1.0) -> torch.Tensor
     an episode counts only if one of its transitions is ``("next", "done")``, so the partial episode a collector
     stops in does not bias the figure.
     """
-    if "episode" not in data.keys():
+    if EPISODE not in data.keys():
         raise KeyError("episode_returns needs an 'episode' entry (collect_transitions writes it).")
-    ids, inverse = torch.unique(data["episode"], return_inverse=True)
+    ids, inverse = torch.unique(data[EPISODE], return_inverse=True)
     n = len(ids)
     order = torch.argsort(inverse, stable=True)
     sorted_inv = inverse[order]

@@ -6,6 +6,7 @@ from typing import Optional
 
 import torch
 
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions, episode_returns
 from torchrl_wbrm.envs import LQRConfig, LQREnv, make_lqr_env
 from torchrl_wbrm.policies import make_lqr_behaviour, make_lqr_expert
@@ -108,7 +109,7 @@ def make_lqr_datasets(
     generator = torch.Generator().manual_seed(seed + 2)
     return OfflineDatasets.from_behaviour_and_expert(
         behaviour,
-        expert.select("observation", "action", "episode", "step_count", strict=False),
+        expert.select("observation", "action", EPISODE, "step_count", strict=False),
         ratio_fraction=data.ratio_fraction,
         generator=generator,
         metadata=metadata,

@@ -52,6 +52,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.datasets import (MAX_MAGNITUDE, HeldRead, OfflineDatasets, episode_returns, files_key,
                                         min_behaviour_episodes)
 
@@ -370,7 +371,7 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0, name: str | Non
         parts.append(TensorDict({
             "observation": obs[:-1],
             "action": _action_tensor(episode.actions, dataset.action_space),
-            "episode": torch.full((steps,), int(episode.id) + episode_offset, dtype=torch.int64),
+            EPISODE: torch.full((steps,), int(episode.id) + episode_offset, dtype=torch.int64),
             "next": {
                 "observation": obs[1:],
                 "reward": torch.as_tensor(np.asarray(episode.rewards, dtype=np.float32)).reshape(steps, 1),
@@ -447,7 +448,7 @@ def _check_expert_episodes(data: MinariDataConfig, expert: TensorDictBase) -> No
     wanted = data.expert_episodes
     if wanted is None:
         return
-    held = int(torch.unique(expert["episode"]).numel())
+    held = int(torch.unique(expert[EPISODE]).numel())
     if not 1 <= int(wanted) <= held:
         raise ValueError(f"env.minari.expert_episodes={wanted} but the Minari expert dataset {data.expert!r} holds "
                          f"{held} episode(s) with steps: ask for 1 to {held}, or null for all.")
@@ -465,12 +466,12 @@ def draw_expert_episodes(expert: TensorDictBase, count: int | None, *, seed: int
     """
     if count is None:
         return expert
-    ids = torch.unique(expert["episode"])
+    ids = torch.unique(expert[EPISODE])
     if not 1 <= int(count) <= ids.numel():
         raise ValueError(f"draw_expert_episodes: count must lie in [1, {ids.numel()}] (the episodes held), got {count}.")
     generator = torch.Generator().manual_seed(int(seed) + 5)
     chosen = ids[torch.randperm(ids.numel(), generator=generator)[: int(count)]]
-    return expert[torch.isin(expert["episode"], chosen)]
+    return expert[torch.isin(expert[EPISODE], chosen)]
 
 
 def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
@@ -487,7 +488,7 @@ def check_minari_data(data: MinariDataConfig, *, keep: bool = False) -> None:
     key, pair = _read_pair(data)
     _check_expert_episodes(data, pair[2])
     behaviour = pair[3]
-    episodes = int(torch.unique(behaviour["episode"]).numel())
+    episodes = int(torch.unique(behaviour[EPISODE]).numel())
     needed = min_behaviour_episodes(data.ratio_fraction)
     if episodes < needed:
         raise ValueError(
@@ -547,7 +548,7 @@ def check_eval_env(data: MinariDataConfig, expert_ds, behaviour_ds, expert: Tens
                              f"returns would not be the data's policy's. Record the env's own action space in the "
                              f"datasets, or evaluate on an env with the data's bounds.")
         limit = genv.spec.max_episode_steps if genv.spec is not None else None
-        longest = max(int(torch.unique(td["episode"], return_counts=True)[1].max()) for td in (expert, behaviour))
+        longest = max(int(torch.unique(td[EPISODE], return_counts=True)[1].max()) for td in (expert, behaviour))
         if limit is not None and limit < longest:
             raise ValueError(f"{where}: it ends episodes after {limit} steps (max_episode_steps), but the Minari "
                              f"datasets hold episodes of {longest} steps: evaluation returns would be of shorter "
@@ -572,7 +573,7 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
 
     _, (expert_ds, behaviour_ds, expert, behaviour) = _read_pair(data)
     _check_expert_episodes(data, expert)
-    expert_pool_episodes = int(torch.unique(expert["episode"]).numel())
+    expert_pool_episodes = int(torch.unique(expert[EPISODE]).numel())
     expert = draw_expert_episodes(expert, data.expert_episodes, seed=seed)
     action_space = expert_ds.action_space
     if isinstance(action_space, spaces.Discrete):
@@ -603,12 +604,12 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
         "seed": seed,
         "behaviour_mean_return": _mean_return(behaviour),
         "expert_mean_return": _mean_return(expert),
-        "behaviour_episodes": int(torch.unique(behaviour["episode"]).numel()),
-        "expert_episodes": int(torch.unique(expert["episode"]).numel()),
+        "behaviour_episodes": int(torch.unique(behaviour[EPISODE]).numel()),
+        "expert_episodes": int(torch.unique(expert[EPISODE]).numel()),
         # env.minari.expert_episodes: the episodes drawn from the expert dataset's (by the seed), else all of them
         "expert_dataset_episodes": expert_pool_episodes,
         "expert_episode_ids": (None if data.expert_episodes is None
-                               else sorted(int(i) for i in torch.unique(expert["episode"]))),
+                               else sorted(int(i) for i in torch.unique(expert[EPISODE]))),
         # which of the behaviour dataset's episodes (Minari ids, as D's "episode") are the expert's, where the dataset
         # says (metadata "expert_episode_ids", written by torchrl_wbrm.data.benchmark); None where it does not
         "behaviour_expert_episode_ids": _recorded_expert_episodes(behaviour_ds),
@@ -619,7 +620,7 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
     }
     return OfflineDatasets.from_behaviour_and_expert(
         behaviour,
-        expert.select("observation", "action", "episode"),
+        expert.select("observation", "action", EPISODE),
         ratio_fraction=data.ratio_fraction,
         generator=torch.Generator().manual_seed(seed + 3),
         metadata=metadata,
@@ -911,7 +912,7 @@ def transitions_to_episodes(data: TensorDictBase) -> list[dict]:
     """Flat transitions (``"episode"`` ids; the steps of an episode in time order, though not necessarily
     contiguous, as a collector writes them) -> the episode dicts of :func:`write_minari_dataset`, in order of
     episode id (``observations`` gets the episode's last ``("next", "observation")`` appended)."""
-    ids = data["episode"]
+    ids = data[EPISODE]
     order = torch.argsort(ids, stable=True)  # stable: each episode's steps keep their time order
     data, ids = data[order], ids[order]
     _, counts = torch.unique_consecutive(ids, return_counts=True)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.datasets import OfflineDatasets, collect_transitions, episode_returns
 from torchrl_wbrm.policies import make_mountain_car_env, make_mountain_car_expert, make_mountain_car_random_policy
 
@@ -82,7 +83,7 @@ def make_mountain_car_datasets(
     if n_random > 0:
         parts.append(collect(random_policy, n_random, seed))
     if n_expert_b > 0:
-        offset = 0 if not parts else int(parts[-1]["episode"].max()) + 1
+        offset = 0 if not parts else int(parts[-1][EPISODE].max()) + 1
         parts.append(collect(expert_policy, n_expert_b, seed + 1, episode_offset=offset))
     behaviour = torch.cat(parts, 0)
     expert = collect(expert_policy, data.expert_transitions, seed + 2)
@@ -95,7 +96,7 @@ def make_mountain_car_datasets(
     }
     return OfflineDatasets.from_behaviour_and_expert(
         behaviour,
-        expert.select("observation", "action", "episode"),
+        expert.select("observation", "action", EPISODE),
         ratio_fraction=data.ratio_fraction,
         generator=torch.Generator().manual_seed(seed + 3),
         metadata=metadata,

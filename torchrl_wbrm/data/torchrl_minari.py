@@ -27,6 +27,7 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers import ImmutableDatasetWriter, Sampler, TensorStorage
 
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.minari_data import resolve_minari_dataset
 
 __all__ = ["minari_replay_buffer", "read_minari_as_torchrl"]
@@ -68,7 +69,7 @@ def read_minari_as_torchrl(dataset_id: str, *, data_path: str | os.PathLike | No
         parts.append(TensorDict({
             "observation": _rows(observations, 0, -1),
             "action": _as_tensor(episode.actions),
-            "episode": torch.full((steps,), int(episode.id), dtype=torch.int64),
+            EPISODE: torch.full((steps,), int(episode.id), dtype=torch.int64),
             "next": {
                 "observation": _rows(observations, 1, None),
                 "reward": _as_tensor(episode.rewards).reshape(steps, 1),

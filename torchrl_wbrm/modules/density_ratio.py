@@ -13,6 +13,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.modules.networks import build_mlp
 
 __all__ = ["BoundedRatio", "DensityRatioNetwork", "PARAMETERISATIONS", "DEFAULT_PARAMETERISATION"]
@@ -139,7 +140,7 @@ class DensityRatioNetwork(TensorDictModule):
         activation: str | type[nn.Module] = nn.ReLU,
         layer_norm: bool = False,
         in_keys: Sequence[NestedKey] = ("observation", "action"),
-        out_key: NestedKey = "density_ratio",
+        out_key: NestedKey = DENSITY_RATIO,
     ) -> None:
         mlp = build_mlp(observation_dim + action_dim, 1, num_cells=num_cells, activation=activation,
                         layer_norm=layer_norm)

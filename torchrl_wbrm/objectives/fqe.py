@@ -13,6 +13,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, dispatch_value_estimator
 from torchrl.objectives.value import TD0Estimator
 
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
 from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import check_not_empty, check_reduction, fast_get, get_entry, per_sample
 from torchrl_wbrm.objectives.functional import (
@@ -127,8 +128,8 @@ class FQELoss(LossModule):
 
         action: NestedKey = "action"
         state_action_value: NestedKey = "state_action_value"
-        weight: NestedKey = "density_ratio"
-        priority_weight: NestedKey = "priority_weight"
+        weight: NestedKey = DENSITY_RATIO
+        priority_weight: NestedKey = PRIORITY_WEIGHT
         priority: NestedKey = "td_error"
         reward: NestedKey = "reward"
         done: NestedKey = "done"

@@ -10,6 +10,7 @@ from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import (
     check_finite,
@@ -106,7 +107,7 @@ class RobustDensityRatioLoss(LossModule):
 
         behaviour: NestedKey = "behaviour"
         expert: NestedKey = "expert"
-        density_ratio: NestedKey = "density_ratio"
+        density_ratio: NestedKey = DENSITY_RATIO
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys

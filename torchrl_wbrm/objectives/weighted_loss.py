@@ -10,6 +10,7 @@ from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
 from torchrl_wbrm.objectives._utils import check_reduction, checks_run, per_sample
 from torchrl_wbrm.objectives.functional import effective_sample_size, per_sample_weight, weighted_reduce
 
@@ -171,8 +172,8 @@ class WeightedLoss(LossModule):
                 ŵ when present. Defaults to the wrapped loss's ``priority_weight`` key, else ``"priority_weight"``.
         """
 
-        weight: NestedKey = "density_ratio"
-        priority_weight: NestedKey = "priority_weight"
+        weight: NestedKey = DENSITY_RATIO
+        priority_weight: NestedKey = PRIORITY_WEIGHT
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -180,7 +181,7 @@ class WeightedLoss(LossModule):
     def __init__(
         self,
         loss: LossModule,
-        weight_key: NestedKey = "density_ratio",
+        weight_key: NestedKey = DENSITY_RATIO,
         *,
         use_prioritized_weights: str | bool | None = None,
         reduction: str | None = None,

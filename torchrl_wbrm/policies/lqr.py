@@ -25,6 +25,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.envs.lqr import LinearGaussianDensityRatio, LQREnv
 
 __all__ = [
@@ -126,4 +127,4 @@ def lqr_true_density_ratio(
         _base(env), e.gain, e.noise_std, b.gain, b.noise_std, time_weights=time_weights,
         behaviour_initial_std=behaviour_initial_std,
     )
-    return TensorDictModule(ratio, in_keys=["observation", "action"], out_keys=["density_ratio"])
+    return TensorDictModule(ratio, in_keys=["observation", "action"], out_keys=[DENSITY_RATIO])

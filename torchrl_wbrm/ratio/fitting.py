@@ -21,6 +21,7 @@ from torch import nn
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.data import PairedSampler, make_replay_buffer
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
@@ -550,7 +551,7 @@ def fit_density_ratio(
                     one_hot,
                     DensityRatioNetwork(b["observation"].shape[-1], n, bounds=tuple(bounds), num_cells=tuple(num_cells),
                                         in_keys=("observation", ("_one_hot", "action"))),
-                    selected_out_keys=["density_ratio"],
+                    selected_out_keys=[DENSITY_RATIO],
                 )
         if device is not None:
             ratio_network = ratio_network.to(device)

@@ -29,6 +29,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.envs.transforms import Transform
 
+from torchrl_wbrm.keys import DENSITY_RATIO
 from torchrl_wbrm.objectives.functional import effective_sample_size
 from torchrl_wbrm.ratio.fitting import as_tensordict
 from torchrl_wbrm.ratio.weights import shape_weights
@@ -158,7 +159,7 @@ def store_density_ratio(
     weights: torch.Tensor | None = None,
     *,
     ratio_network: TensorDictModule | None = None,
-    key: NestedKey = "density_ratio",
+    key: NestedKey = DENSITY_RATIO,
     temper: float = 1.0,
     clip: float | None = None,
     mix: float = 0.0,

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+from torchrl_wbrm.keys import RESULTS
+
 __all__ = ["below_behaviour", "ci_cell", "load_results", "per_seed_cell", "results_table", "return_fell",
            "split_by_status", "summarise"]
 
@@ -159,13 +161,13 @@ def load_results(root, *, finished_only: bool = False) -> list[dict]:
     from pathlib import Path
 
     loaded = []
-    for path in sorted(Path(root).rglob("results.json")):
+    for path in sorted(Path(root).rglob(RESULTS)):
         try:
             loaded.append((path, json.loads(path.read_text())))
         except json.JSONDecodeError as err:
             raise ValueError(f"{path} is not valid JSON ({err}).") from err
     # a multi-seed run (``seeds=[...]``, ``"kind": "seeds"``) stands for its seeds' runs, each read once
-    seed_paths = {id(run): path.parent / f"seed{run['seed']}" / "results.json"
+    seed_paths = {id(run): path.parent / f"seed{run['seed']}" / RESULTS
                   for path, record in loaded if record.get("kind") == "seeds" for run in record.get("runs", [])}
     covered = {p.resolve() for p in seed_paths.values()}
     # a seed<s>/ folder beside a multi-seed run's record that the record does not list is not one of its runs

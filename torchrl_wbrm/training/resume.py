@@ -9,7 +9,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from torchrl_wbrm.keys import CHECKPOINT
+from torchrl_wbrm.keys import CHECKPOINT, RESULTS
 from torchrl_wbrm.training.checkpoint import read_checkpoint
 from torchrl_wbrm.training.config import config_as_dict, config_schema
 from torchrl_wbrm.training.validation import check_writable_folder
@@ -234,7 +234,7 @@ def check_seeds_resume(cfg, run_dir: Path, task=None) -> None:
     for seed in cfg.seeds:
         seed_dir = Path(run_dir) / f"seed{seed}"
         now_seed = {**now, "seed": int(seed)}
-        done = seed_dir / "results.json"
+        done = seed_dir / RESULTS
         if done.is_file():
             try:
                 results = json.loads(done.read_text())

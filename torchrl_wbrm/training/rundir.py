@@ -22,7 +22,7 @@ try:  # advisory locks (POSIX); without them a run directory is not locked
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-from torchrl_wbrm.keys import CHECKPOINT
+from torchrl_wbrm.keys import CHECKPOINT, HISTORY, RESULTS
 
 __all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim", "RunDirInUse", "check_run_dir",
            "claim_run_dir", "clear_run_outputs", "hand_over", "holds_run", "linked_outputs", "refuse_links",
@@ -30,12 +30,12 @@ __all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim"
 
 
 #: Files that mark a directory as holding a run.
-RUN_FILES = (CHECKPOINT, "results.json")
+RUN_FILES = (CHECKPOINT, RESULTS)
 
 
 #: What a run writes into its directory (besides Hydra's record): removed by ``overwrite=true`` so that no output of
 #: the earlier run (its CSV logs above all, which torchrl's ``CSVLogger`` would append to) outlives it.
-RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", "results.json", "results.json.tmp", "history.json", "history.json.tmp",
+RUN_OUTPUTS = (CHECKPOINT, "checkpoint.tmp", RESULTS, "results.json.tmp", HISTORY, "history.json.tmp",
                "training_curve.png", "evaluation.png", "logs", "wandb")
 
 
@@ -57,7 +57,7 @@ def holds_run(run_dir: Path) -> list[str]:
     """The files of :data:`RUN_FILES` (and ``history.json``) in ``run_dir`` and in its ``seed<s>/`` folders (a
     multi-seed run's, finished or interrupted), if any of :data:`RUN_FILES` is among them."""
     run_dir = Path(run_dir)
-    present = [name for name in (*RUN_FILES, "history.json") if (run_dir / name).exists()]
+    present = [name for name in (*RUN_FILES, HISTORY) if (run_dir / name).exists()]
     for seed_dir in _seed_dirs(run_dir):
         present += [f"{seed_dir.name}/{name}" for name in RUN_FILES if (seed_dir / name).exists()]
     return present if any(name.rsplit("/", 1)[-1] in RUN_FILES for name in present) else []
