@@ -47,13 +47,13 @@ from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_
 from torchrl_wbrm.training.checkpoint import (checkpoint_state, data_fingerprint, restore_training_state, same_data,
                                               set_rng_state, set_seed, write_checkpoint)
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
-from torchrl_wbrm.training.reporting import below_behaviour, return_fell
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.training.offline_value import offline_value_figures
-from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion, selection_record
-from torchrl_wbrm.training.results import json_safe, pause_for_test, write_json
+from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion
+from torchrl_wbrm.training.results import pause_for_test, write_json
+from torchrl_wbrm.training.run_results import diverged_results, finished_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim, unique_dir
 from torchrl_wbrm.training.stops import (
@@ -638,22 +638,6 @@ class WBRMTrainer:
             self._q_eval(self.cfg.q.steps)
         return self.results()
 
-    def _q_scale(self, final: dict) -> dict:
-        """The largest |mean Q̂| the run reports (final evaluation, last training figures) and, for every algo with a
-        Q, the delivered Q̂'s mean over D's training rows (``"q_mean_data"``: the algos on torchrl's losses report no
-        Q figure of their own), against the run's Q bound (:class:`~torchrl_wbrm.training.stops.QBound`)."""
-        train = [r for r in self.history if r["stage"] == "q_train"]
-        values = {k: v for k, v in final.items() if k.startswith("q_mean")}
-        if self.algo.q_value is not None and self.algo.data != "expert":
-            values["q_mean_data"] = self._q_mean_over_d()
-        if train:
-            values.update({f"train_{k}": v for k, v in train[-1].items() if k in QBound.FIGURES})
-        values = {k: abs(float(v)) for k, v in values.items() if isinstance(v, (int, float)) and math.isfinite(v)}
-        largest = max(values.values(), default=None)
-        return {"max_abs_q_mean": largest, "figure": max(values, key=values.get) if values else None,
-                "bound": self.q_bound.bound, "factor": self.q_bound.factor,
-                "blow_up": self.q_bound.exceeded(largest)}
-
     @torch.no_grad()
     def _q_mean_over_d(self, chunk: int = 8192) -> float:
         """The current Q̂'s mean over D's training rows (its own state-actions), by the algo's ``q_value``."""
@@ -662,73 +646,27 @@ class WBRMTrainer:
         return total / d.shape[0]
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
-        """``results.json`` of a run stopped by divergence: valid JSON, ``"status": "diverged"`` and where."""
-        final = [r for r in self.history if r["stage"] == "q"]
-        results = {
-            "status": "diverged",
-            "env": self.cfg.env.name,
-            "algo": self.cfg.algo,
-            "seed": self.cfg.seed,
-            "diverged": {"stage": err.stage, "step": err.step, "figure": err.figure, "value": repr(err.value),
-                         "message": str(err), "checkpoint_step": err.checkpoint_step,
-                         "checkpoint_stage": None if self._checkpoint_state is None else self._checkpoint_state["stage"]},
-            "final": final[-1] if final else {},
-            "flags": ["diverged"],
-            "data_seconds": self.data_seconds,
-            "config": self.config_record(),
-        }
+        """``results.json`` of a run stopped by divergence (:func:`~torchrl_wbrm.training.run_results.diverged_results`),
+        written with the history."""
+        results = diverged_results(
+            self.cfg, self.history, err, data_seconds=self.data_seconds, config=self.config_record(),
+            checkpoint_stage=None if self._checkpoint_state is None else self._checkpoint_state["stage"])
         write_json(self.run_dir / "results.json", results)
         write_json(self.run_dir / "history.json", self.history)
-        return json_safe(results)
+        return results
 
     def results(self) -> dict:
-        final = [r for r in self.history if r["stage"] == "q"]
-        ratio_records = [r for r in self.history if r["stage"] == "ratio"]
-        results = {
-            "status": "finished",
-            "env": self.cfg.env.name,
-            "algo": self.cfg.algo,
-            "seed": self.cfg.seed,
-            "final": final[-1] if final else {},
-            "weights": self.weight_stats,
-            "ratio": {
-                "source": self.cfg.ratio.source if self.algo.uses_ratio else "none",
-                "best_held_out_loss": self.ratio_fitter.best["loss"] if self.ratio_network is not None else None,
-                "best_step": self.ratio_fitter.best.get("step") if self.ratio_network is not None else None,
-                "steps_run": ratio_records[-1]["step"] if ratio_records else 0,
-                **({k: v for k, v in ratio_records[-1].items() if k.startswith("ratio_")} if ratio_records else {}),
-            },
-            "data": {**self.datasets.sizes(), **{k: v for k, v in self.datasets.metadata.items() if k.endswith("return")}},
-            "data_seconds": self.data_seconds,
-            "config": self.config_record(),
-        }
-        drawn = self.datasets.metadata.get("expert_episode_ids")
-        if drawn is not None:  # env.minari.expert_episodes: which of the expert dataset's episodes this seed drew
-            results["data"]["expert_episode_ids"] = drawn
-        if self.ratio_network is not None and ratio_records:
-            best = [r for r in ratio_records if r["step"] == self.ratio_fitter.best.get("step")]
-            if best:
-                results["ratio"].update({k: v for k, v in best[0].items() if k.startswith("ratio_")})
-        results["selection"] = selection_record(  # delivered, best and last by their online returns
-            self.history, self.cfg.q.select, None if self.selection is None else self.selection.figure,
-            episodes=self.cfg.eval.episodes,
-            train_episodes=self.cfg.eval.train_episodes, steps=self.cfg.q.steps)
-        if self.cfg.eval.offline_value:  # the delivered actor's value by FQE on D: no environment
-            figures, results["offline_value"] = self.offline_value()
-            results["final"] = {**results["final"], **figures}
-        results["q_scale"] = self._q_scale(results["final"])
-        results["flags"] = ["q_blow_up"] if results["q_scale"]["blow_up"] else []
-        check = getattr(self, "ratio_check", None)
-        if check is not None:  # the fitter's verdict: ratio_collapse, ratio_worse_than_uniform
-            results["ratio"]["check"] = check
-            results["flags"].extend(check.get("flags", ["ratio_collapse"] if check.get("collapse") else []))
-        results["behaviour_check"] = below_behaviour(results["final"], results["data"])
-        if results["behaviour_check"]["below"]:
-            results["flags"].append("below_behaviour")
-        results["return_check"] = return_fell(self.history, results["data"])
-        if results["return_check"]["fell"]:
-            results["flags"].append("return_fell")
-        results = json_safe(results)
+        """The finished run's results (:func:`~torchrl_wbrm.training.run_results.finished_results`), written with the
+        history, then the plots and the logger's summary."""
+        offline_value = self.offline_value() if self.cfg.eval.offline_value else None  # FQE on D: no environment
+        q_mean_data = self._q_mean_over_d() if self.algo.q_value is not None and self.algo.data != "expert" else None
+        results = finished_results(
+            self.cfg, self.history, datasets=self.datasets, weights=self.weight_stats,
+            ratio_source=self.cfg.ratio.source if self.algo.uses_ratio else "none",
+            ratio_best=self.ratio_fitter.best if self.ratio_network is not None else None,
+            ratio_check=getattr(self, "ratio_check", None),
+            selection_figure=None if self.selection is None else self.selection.figure, offline_value=offline_value,
+            bound=self.q_bound, q_mean_data=q_mean_data, data_seconds=self.data_seconds, config=self.config_record())
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / "results.json", results)
         write_json(self.run_dir / "history.json", self.history)
