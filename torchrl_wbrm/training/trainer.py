@@ -108,6 +108,9 @@ class WBRMTrainer:
             through the API writes the files the recipe writes.
         resume: continue from ``run_dir/checkpoint.pt``.
         progress: show tqdm bars.
+        evaluation: build the task's evaluator (``False``: no evaluation env or simulation is built, and the trainer
+            can value its policy from D alone, :meth:`offline_value`, but not train or evaluate; a run with
+            ``ratio.source=exact`` needs the evaluator's exact ratio).
 
     A trainer claims ``run_dir`` (:func:`~torchrl_wbrm.training.rundir.claim_run_dir`) before it looks into it and
     holds the claim until :meth:`run` ends: a second trainer or recipe run on the same directory, in this process or
@@ -116,8 +119,9 @@ class WBRMTrainer:
     """
 
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger="config", resume: bool = False,
-                 progress: bool = True):
+                 progress: bool = True, evaluation: bool = True):
         self._claim: RunDirClaim | None = None
+        self.evaluation = evaluation
         # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
         # one run's data, so a prepared task already used by another trainer is built anew
         prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)
@@ -307,6 +311,12 @@ class WBRMTrainer:
 
     def _setup_evaluation(self) -> None:
         """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
+        if not self.evaluation:
+            if self.cfg.ratio.source == "exact" and self.algo.uses_ratio:
+                raise ValueError("evaluation=False builds no evaluator, and ratio.source=exact reads the evaluator's "
+                                 "exact ratio: build the trainer with evaluation=True.")
+            self.evaluator, self.eval_samples, self.true_ratio = None, {}, None
+            return
         self.evaluator: Evaluator = self.task.evaluator(self.cfg.eval)
         self.eval_samples = self.evaluator.eval_samples
         self.true_ratio = self.evaluator.true_ratio
@@ -593,6 +603,9 @@ class WBRMTrainer:
         kept and ``"diverged"`` names the stage, step and figure), or ``None`` when stopped by ``until``. SIGINT and
         SIGTERM stop it at the next step boundary: a checkpoint is written and :class:`RunInterrupted` raised.
         """
+        if not self.evaluation:
+            raise ValueError("This trainer was built with evaluation=False: it can value its policy from D "
+                             "(offline_value) but not run; build it with evaluation=True to train or evaluate.")
         if self._claim is None:  # released by an earlier run() (e.g. one stopped by ``until``)
             self._claim = claim_run_dir(self.run_dir)
         try:
