@@ -27,8 +27,7 @@ from torchrl_wbrm.training.results import write_json
 from torchrl_wbrm.training.resume import read_run_record
 from torchrl_wbrm.training import stops
 from torchrl_wbrm.training.stops import RunInterrupted
-from torchrl_wbrm.training.config import prepare_config
-from torchrl_wbrm.training.hydra_guard import take_prepared
+from torchrl_wbrm.training.config import PreparedConfig, prepare_config
 from torchrl_wbrm.training.logging import make_logger
 from torchrl_wbrm.training.reporting import summarise
 
@@ -86,11 +85,27 @@ def wbrm_offline() -> None:
         sys.argv[1:] = with_run_overrides(sys.argv[1:])
     except ValueError as err:  # a run record holding more than the recipe's settings: one line, nothing applied
         raise SystemExit(f"Refused (nothing was written): {err}") from None
-    _wbrm_offline_app()
+    hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")(RecipeRun())()
 
 
-@hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")
-def _wbrm_offline_app(cfg: DictConfig) -> None:
+class RecipeRun:
+    """One invocation of the recipe, Hydra's task function: the Hydra callback
+    (:class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard`) hands it the config it prepared
+    (:meth:`take_prepared`, from its ``on_job_start``), and Hydra then calls it with the composed config."""
+
+    def __init__(self) -> None:
+        self.prepared: PreparedConfig | None = None
+
+    def take_prepared(self, prepared: PreparedConfig) -> None:
+        """Keep the config :class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard` prepared for this run."""
+        self.prepared = prepared
+
+    def __call__(self, cfg: DictConfig) -> None:
+        prepared, self.prepared = self.prepared, None
+        _wbrm_offline_app(cfg, prepared)
+
+
+def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None) -> None:
     """Deep Weighted Bellman Residual Minimization, offline: stage 1 fits the density ratio ŵ, stage 2 fits Q*.
 
     Writes results.json, history.json, training_curve.png, evaluation.png, logs/ and checkpoint.pt in the run
@@ -99,8 +114,8 @@ def _wbrm_offline_app(cfg: DictConfig) -> None:
     start = time.perf_counter()
     run_dir = Path(cfg.resume) if cfg.resume else Path(HydraConfig.get().runtime.output_dir)
     # the config merged, resolved and validated once, with its env's task: by the Hydra callback (RunDirGuard), or
-    # here, before any data are collected, when the app runs without it
-    prepared = take_prepared(run_dir) or prepare_config(cfg)
+    # here, before any data are collected, when the app runs without it (a multirun's job)
+    prepared = prepared or prepare_config(cfg)
     if cfg.seeds:
         return _run_seeds(prepared, cfg, run_dir)
     try:

@@ -22,10 +22,7 @@ from torchrl_wbrm.training.rundir import (
     unique_dir,
 )
 
-__all__ = ["RunDirGuard", "take_prepared"]
-
-#: Each checked run's prepared config, by run directory, until the run takes it (:func:`take_prepared`).
-_PREPARED: dict[Path, PreparedConfig] = {}
+__all__ = ["RunDirGuard"]
 
 
 class RunDirGuard(Callback):
@@ -36,7 +33,8 @@ class RunDirGuard(Callback):
     In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
 
     * the config is merged, resolved and validated, and its env's task built, once
-      (:func:`~torchrl_wbrm.training.config.prepare_config`); the run takes both (:func:`take_prepared`);
+      (:func:`~torchrl_wbrm.training.config.prepare_config`); in ``on_job_start`` the guard hands both to the task
+      function when it takes them (its ``take_prepared(prepared)``, :class:`~torchrl_wbrm.cli.RecipeRun`'s);
     * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.tasks.Task.check_data`: a Minari
       pair, or a saved dataset), and held for the run's trainer, which does not read them again;
     * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
@@ -52,18 +50,33 @@ class RunDirGuard(Callback):
     traceback before it only under ``verbose=true``; Hydra would only warn about an exception raised by a callback.
     """
 
+    def __init__(self) -> None:
+        self._prepared: PreparedConfig | None = None  # from on_run_start to this run's on_job_start
+
     def on_run_start(self, config, **kwargs) -> None:
         try:
-            self.check(config)
+            self._prepared, _ = self.checked(config)
         except (ValueError, TypeError, KeyError, OSError, RuntimeError, OmegaConfBaseException) as err:
             if _verbose(config):
                 traceback.print_exc()
             reason = " ".join(str(err).split()) or type(err).__name__  # one line
             raise SystemExit(f"Refused (nothing was written): {reason}") from err
 
+    def on_job_start(self, config, *, task_function, **kwargs) -> None:
+        """Hand the config prepared in :meth:`on_run_start` to the task function, when it takes one."""
+        prepared, self._prepared = self._prepared, None
+        take = getattr(task_function, "take_prepared", None)
+        if prepared is not None and take is not None:
+            take(prepared)
+
     @staticmethod
     def check(config) -> RunDirClaim:
         """The checks of :meth:`on_run_start` on a composed config (with its ``hydra`` node); returns the claim."""
+        return RunDirGuard.checked(config)[1]
+
+    @staticmethod
+    def checked(config) -> tuple[PreparedConfig, RunDirClaim]:
+        """:meth:`check`, returning the prepared config too."""
         prepared = prepare_config(_task_config(config))
         cfg, task = prepared
         task.check_data()  # bad data are refused here, before anything is written
@@ -96,14 +109,7 @@ class RunDirGuard(Callback):
                     clear_run_outputs(run_dir, hydra_record=True, job_name=_job_name(config))
         _set_run_dir(config, run_dir)
         hand_over(claim)
-        _PREPARED[run_dir.resolve()] = prepared
-        return claim
-
-
-def take_prepared(run_dir) -> PreparedConfig | None:
-    """The config and task :class:`RunDirGuard` prepared for the run in ``run_dir`` (once: ``None`` afterwards, and
-    for a run the guard did not check)."""
-    return _PREPARED.pop(Path(run_dir).resolve(), None)
+        return prepared, claim
 
 
 def _task_config(config):
