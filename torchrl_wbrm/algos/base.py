@@ -198,7 +198,7 @@ class ExpertCloning:
     The actor step minimises ``λ · (−mean_D Q(x, μ(x))) + mean_{S^e} ‖(μ(x_e) − a_e) / h‖² / m``, with
     ``λ = α / mean_D |Q(x, μ(x))|`` (:func:`~torchrl_wbrm.objectives.functional.td3bc_lambda`: Fujimoto & Gu's
     normalisation, the Q term has the same size whatever the reward scale; the mean of ``|Q|``, not ``|mean Q|``,
-    which passes through 0 when Q changes sign during training, as on LunarLanderContinuous-v3, and then makes λ
+    which passes through 0 when Q changes sign during training and then makes λ
     explode and the Q term pull the actor off the expert) and ``h`` the half-width of the action box (the cloning
     term has the same size whatever the action bounds; ``m`` the action dimension).
     S^e, the expert samples the method already holds for stage 1, keeps μ on the expert's support; Q then moves it

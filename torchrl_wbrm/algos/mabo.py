@@ -22,7 +22,7 @@ ADVERSARIES = ("network", "linear")
 @dataclass
 class MABOConfig:
     """MABO with :class:`~torchrl_wbrm.objectives.MABOLoss` (``baselines.mabo``). The defaults are the variant that
-    did least badly on LQR exp1 (every variant tried stays worse than the zero-action policy; README).
+    did least badly on the LQR tasks (:doc:`/results/paper_tables`).
 
     Attributes:
         adversary: the adversary class W: ``"linear"`` (the span of
