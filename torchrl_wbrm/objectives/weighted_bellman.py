@@ -15,6 +15,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
 from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
@@ -271,8 +272,8 @@ class WeightedBellmanLoss(LossModule):
         action: NestedKey = "action"
         state_action_value: NestedKey = "state_action_value"
         action_value: NestedKey = "action_value"
-        weight: NestedKey = "density_ratio"
-        priority_weight: NestedKey = "priority_weight"
+        weight: NestedKey = DENSITY_RATIO
+        priority_weight: NestedKey = PRIORITY_WEIGHT
         priority: NestedKey = "td_error"
         reward: NestedKey = "reward"
         done: NestedKey = "done"

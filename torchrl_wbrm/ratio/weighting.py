@@ -11,6 +11,7 @@ from typing import Callable
 import torch
 from tensordict import TensorDictBase
 
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
 from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.objectives.functional import relative_density_ratio
 from torchrl_wbrm.ratio.storing import compute_density_ratio, store_density_ratio
@@ -78,7 +79,7 @@ def raw_density_ratio(data: TensorDictBase, *, source: str, network=None, true_r
     if source == "learned":
         return compute_density_ratio(network, data, chunk_size=8192, device=device)
     if source == "exact":
-        raw = true_ratio(data.select("observation", "action"))["density_ratio"]
+        raw = true_ratio(data.select("observation", "action"))[DENSITY_RATIO]
         return relative_density_ratio(raw, relative_beta) if relative_beta else raw
     return torch.ones(data.shape[0], 1)
 
@@ -88,7 +89,7 @@ def weights_over(data: TensorDictBase, *, source: str, network=None, true_ratio:
                  fitter=None, relative_beta: float = 0.0, aggregate: str = "transition", temper: float = 1.0,
                  clip: float | None = None, mix: float = 0.0, self_normalise: bool = True,
                  expert_like: bool = False, mark_expert_like: bool = False, true_expert_episodes=None,
-                 key: str = "density_ratio", device=None) -> WeightsOver:
+                 key: str = DENSITY_RATIO, device=None) -> WeightsOver:
     """ŵ over the rows of ``data``, shaped and stored there; stage 1's whole hand-over to stage 2.
 
     Args:
@@ -118,12 +119,12 @@ def weights_over(data: TensorDictBase, *, source: str, network=None, true_ratio:
     verdict = fitter.verdict(raw) if source == "learned" and fitter is not None else None
     rows, figures = None, {}
     if expert_like or mark_expert_like:
-        rows, figures = expert_like_figures(raw, data["episode"], true_expert_episodes)
+        rows, figures = expert_like_figures(raw, data[EPISODE], true_expert_episodes)
         if mark_expert_like:
             data.set("expert_like", rows.reshape(data.shape))
     w = raw
     if aggregate == "episode" and source != "none":
-        w = episode_weights(w, data["episode"])
+        w = episode_weights(w, data[EPISODE])
     stored = store_density_ratio(data, w, key=key, temper=temper, clip=clip, mix=mix,
                                  self_normalise=self_normalise and source != "none", keepdim=True,
                                  dtype=data["observation"].dtype)

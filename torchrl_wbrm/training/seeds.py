@@ -22,6 +22,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from torchrl_wbrm.keys import RESULTS
 from torchrl_wbrm.evaluation.stats import mean_ci
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.results import json_safe, write_json
@@ -91,7 +92,7 @@ def _earlier_seeds(cfg: WBRMConfig, run_dir: Path) -> tuple[dict[int, dict], lis
     finished, checkpointed = {}, []
     for seed in cfg.seeds:
         seed_dir = run_dir / f"seed{seed}"
-        done = seed_dir / "results.json"
+        done = seed_dir / RESULTS
         if done.is_file():
             try:
                 results = json.loads(done.read_text())
@@ -151,7 +152,7 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
     timing["total"] = time.perf_counter() - start
     results = _combined(cfg, runs, timing=timing, task=prepared.task)
     results["wall_seconds"] = timing["total"]
-    write_json(run_dir / "results.json", results)
+    write_json(run_dir / RESULTS, results)
     return results
 
 

@@ -25,6 +25,7 @@ import math
 import torch
 from tensordict import TensorDictBase
 
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
 from torchrl_wbrm.data.datasets import check_episodes_in_order
 from torchrl_wbrm.objectives.functional import (action_cloning, bootstrapped_returns, return_residual,
                                                 weighted_mean_squared_residual)
@@ -165,8 +166,8 @@ class ExpertLikeReturn:
 
     def score(self, squared_residual: torch.Tensor | None = None) -> float:
         d = self.rows
-        q, y = self.loss.bellman_error(d.clone().set("density_ratio", torch.ones(d.shape[0], 1)).to(self.device))
-        g = bootstrapped_returns(d["next", "reward"].reshape(-1).to(y), y.reshape(-1), d["episode"].reshape(-1),
+        q, y = self.loss.bellman_error(d.clone().set(DENSITY_RATIO, torch.ones(d.shape[0], 1)).to(self.device))
+        g = bootstrapped_returns(d["next", "reward"].reshape(-1).to(y), y.reshape(-1), d[EPISODE].reshape(-1),
                                  self.gamma)
         return return_residual(q, g).item()
 
@@ -189,7 +190,7 @@ def make_criterion(select: str, *, held_out_weights=None, expert_like_rows: Tens
         if select == "expert_like_action":
             return ExpertLikeAction(expert_like_rows.select("observation", "action").clone(), actor, half_width,
                                     device)
-        return ExpertLikeReturn(expert_like_rows.select("observation", "action", "episode", "next").clone(), loss,
+        return ExpertLikeReturn(expert_like_rows.select("observation", "action", EPISODE, "next").clone(), loss,
                                 gamma, device)
     if select in EXPERT_LIKE or select == "held_out_weighted_residual":
         return HeldOutWeightedResidual(held_out_weights())

@@ -36,7 +36,7 @@ from torchrl_wbrm.data.datasets import split_by_episode
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.tasks import Evaluator, Task, cached_offline_datasets, get_task
 from torchrl_wbrm.evaluation import ratio_error
-from torchrl_wbrm.keys import CHECKPOINT
+from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, EPISODE, HISTORY, RESULTS
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.modules.action_scaling import ActionScaling
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
@@ -200,7 +200,7 @@ class WBRMTrainer:
             # algos without the S^e cloning term; a custom algo may lack one
             raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
                              f"{self.cfg.algo} does not have.")
-        if "episode" in self.q_train_data.keys():
+        if EPISODE in self.q_train_data.keys():
             return
         reads_ratio = self.algo.uses_ratio and self.cfg.ratio.source != "none"
         for needed, setting, instead in (
@@ -443,8 +443,8 @@ class WBRMTrainer:
         if self.true_ratio is None or self.ratio_network is None:
             return {}
         b = self.eval_samples["behaviour"].to(self.device)
-        w_hat = self.ratio_network(b.clone())["density_ratio"]
-        w = self.true_ratio(b.clone())["density_ratio"]
+        w_hat = self.ratio_network(b.clone())[DENSITY_RATIO]
+        w = self.true_ratio(b.clone())[DENSITY_RATIO]
         return {f"ratio_{k}": v for k, v in ratio_error(w_hat, w).items()}
 
     # ------------------------------------------------------------------ weights over D
@@ -458,7 +458,7 @@ class WBRMTrainer:
                                 clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise, device=self.device,
                                 **kwargs)
         except NonFiniteWeightsError as err:
-            raise TrainingDiverged(what, 0, "density_ratio", err.value) from err
+            raise TrainingDiverged(what, 0, DENSITY_RATIO, err.value) from err
 
     def _raw_weights(self, d: TensorDictBase, source: str) -> torch.Tensor:
         """ŵ over the rows of ``d`` before any shaping (:func:`~torchrl_wbrm.ratio.raw_density_ratio`)."""
@@ -587,7 +587,7 @@ class WBRMTrainer:
         """The current Q's figures that ``q.select`` can minimise: ``"held_out_bellman_residual"``, the mean δ² (any
         residual form) on the held-out D episodes, and the figure of the run's ``q.select`` criterion
         (:mod:`torchrl_wbrm.training.selection`)."""
-        held_out = self.q_holdout.clone().set("density_ratio", torch.ones(self.q_holdout.shape[0], 1))
+        held_out = self.q_holdout.clone().set(DENSITY_RATIO, torch.ones(self.q_holdout.shape[0], 1))
         squared = bellman_residual(*self.algo.bellman_loss.bellman_error(held_out.to(self.device))).pow(2)
         out = {"held_out_bellman_residual": squared.mean().item()}
         if self.selection is not None:
@@ -664,8 +664,8 @@ class WBRMTrainer:
         results = diverged_results(
             self.cfg, self.history, err, data_seconds=self.data_seconds, config=self.config_record(),
             checkpoint_stage=None if self._checkpoint_state is None else self._checkpoint_state["stage"])
-        write_json(self.run_dir / "results.json", results)
-        write_json(self.run_dir / "history.json", self.history)
+        write_json(self.run_dir / RESULTS, results)
+        write_json(self.run_dir / HISTORY, self.history)
         return results
 
     def results(self) -> dict:
@@ -681,8 +681,8 @@ class WBRMTrainer:
             selection_figure=None if self.selection is None else self.selection.figure, offline_value=offline_value,
             bound=self.q_bound, q_mean_data=q_mean_data, data_seconds=self.data_seconds, config=self.config_record())
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
-        write_json(self.run_dir / "results.json", results)
-        write_json(self.run_dir / "history.json", self.history)
+        write_json(self.run_dir / RESULTS, results)
+        write_json(self.run_dir / HISTORY, self.history)
         if self.cfg.plots:
             from torchrl_wbrm.training.plots import plot_run
 
