@@ -19,7 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_wbrm.keys import RESULTS
+from torchrl_wbrm.keys import METADATA, RESULTS
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs
@@ -247,8 +247,8 @@ def check_torchrl_out(out: Path, overwrite: bool) -> None:
     entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
     if not entries:
         return
-    ours = {"metadata.json", *PARTS}
-    if not (out / "metadata.json").is_file():
+    ours = {METADATA, *PARTS}
+    if not (out / METADATA).is_file():
         raise FileExistsError(f"out={out} is a non-empty directory that holds no dataset ({', '.join(entries[:5])}"
                               f"{', ...' if len(entries) > 5 else ''}); nothing was collected. make_dataset writes "
                               f"into a new or empty directory: choose another out=.")
@@ -268,7 +268,7 @@ def _remove_dataset(out: Path) -> None:
 
     from torchrl_wbrm.data.datasets import PARTS
 
-    (out / "metadata.json").unlink(missing_ok=True)
+    (out / METADATA).unlink(missing_ok=True)
     for name in PARTS:
         shutil.rmtree(out / name, ignore_errors=True)
 
@@ -328,7 +328,7 @@ def make_dataset(cfg: DictConfig) -> None:
         print(f"env: {cfg.env.name}  seed: {cfg.seed}  ({time.perf_counter() - start:.1f} s)")
         return
     datasets = task.make_datasets(seed=cfg.seed, storage=cfg.storage)
-    replaced = (out / "metadata.json").is_file()
+    replaced = (out / METADATA).is_file()
     if replaced:  # overwrite=true, checked above
         _remove_dataset(out)
     datasets.save(out)

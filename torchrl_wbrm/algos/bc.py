@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import BCLoss
 
-from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE, EXPERT_LIKE
 from torchrl_wbrm.algos.base import Algo, AlgoContext, adam, descend, deterministic_actor
 from torchrl_wbrm.algos.registry import register_algo
 from torchrl_wbrm.objectives.functional import action_cloning
@@ -88,10 +88,10 @@ def cloned_data(data: str, behaviour: TensorDictBase, expert: TensorDictBase, *,
             raise ValueError("baselines.bc.data=oracle needs D's episode ids (key 'episode'), which these data lack.")
         d = d[torch.isin(behaviour[EPISODE], torch.as_tensor(list(expert_episode_ids), dtype=torch.int64))]
     elif data == "expert_like":
-        if "expert_like" not in behaviour.keys():
+        if EXPERT_LIKE not in behaviour.keys():
             raise ValueError("baselines.bc.data=expert_like clones the rows the trainer marks 'expert_like' after "
                              "stage 1; these data have no such key.")
-        d = d[behaviour["expert_like"].reshape(-1).bool()]
+        d = d[behaviour[EXPERT_LIKE].reshape(-1).bool()]
     weight = d[weight_key]
     if data != "weighted":
         d.set(weight_key, torch.ones_like(weight))

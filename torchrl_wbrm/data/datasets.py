@@ -29,7 +29,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_wbrm.keys import EPISODE
+from torchrl_wbrm.keys import EPISODE, METADATA
 from torchrl_wbrm.data.sampling import STATE_ACTION_KEYS, PairedSampler
 
 __all__ = [
@@ -393,12 +393,12 @@ class OfflineDatasets:
                 }
             files[name] = entries
         meta = {"format_version": FORMAT_VERSION, "sizes": self.sizes(), "files": files, **self.metadata}
-        tmp = path / "metadata.json.tmp"
+        tmp = path / f"{METADATA}.tmp"
         tmp.unlink(missing_ok=True)  # a stale temporary, or a link planted under its name, is removed, not followed
         with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644),
                        "w") as f:
             f.write(json.dumps(meta, indent=2, default=str))
-        os.replace(tmp, path / "metadata.json")
+        os.replace(tmp, path / METADATA)
         return path
 
     @staticmethod

@@ -20,6 +20,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
+from torchrl_wbrm.keys import BEHAVIOUR, EXPERT
+
 __all__ = ["BufferBatches", "PairedSampler", "STATE_ACTION_KEYS"]
 
 #: The entries of S^b and S^e the density ratio reads.
@@ -128,11 +130,11 @@ class PairedSampler:
         keep = {k if isinstance(k, str) else k[0] for k in keys}  # top-level names (a nested key keeps its head)
         self.batch_size = int(batch_size)
         self._sides = {}
-        for name, buffer in (("behaviour", behaviour), ("expert", expert)):
+        for name, buffer in ((BEHAVIOUR, behaviour), (EXPERT, expert)):
             data = buffer._storage._storage
             exclude = tuple(k for k in data.keys() if k not in keep)
             self._sides[name] = BufferBatches(buffer, self.batch_size, device=device, exclude=exclude)
-        self.device = self._sides["behaviour"].device
+        self.device = self._sides[BEHAVIOUR].device
 
     def sample(self) -> TensorDict:
         index = {name: side.indices() for name, side in self._sides.items()}

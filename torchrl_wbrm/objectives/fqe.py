@@ -13,7 +13,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, dispatch_value_estimator
 from torchrl.objectives.value import TD0Estimator
 
-from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT, WEIGHT_ESS
 from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import check_not_empty, check_reduction, fast_get, get_entry, per_sample
 from torchrl_wbrm.objectives.functional import (
@@ -232,7 +232,7 @@ class FQELoss(LossModule):
     @property
     def out_keys(self) -> list[str]:
         keys = ["loss_value", "td_error_mean", "td_error_abs_mean", "q_mean", "target_value_mean"]
-        return keys + (["weight_mean", "weight_ess"] if self.use_weights else [])
+        return keys + (["weight_mean", WEIGHT_ESS] if self.use_weights else [])
 
     # ---------------------------------------------------------------- pieces
     def _network_call(self, name: str) -> NetworkCall:
@@ -320,7 +320,7 @@ class FQELoss(LossModule):
                            "target_value_mean": target.mean()}
             if self.use_weights:
                 diagnostics["weight_mean"] = weight.mean()
-                diagnostics["weight_ess"] = effective_sample_size(weight)
+                diagnostics[WEIGHT_ESS] = effective_sample_size(weight)
         return loss, diagnostics
 
     @dispatch

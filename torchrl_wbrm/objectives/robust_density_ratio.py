@@ -10,7 +10,7 @@ from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from torchrl_wbrm.keys import DENSITY_RATIO
+from torchrl_wbrm.keys import BEHAVIOUR, DENSITY_RATIO, DENSITY_RATIO_ESS, EXPERT, LOSS_DENSITY_RATIO
 from torchrl_wbrm.objectives._fast import NetworkCall
 from torchrl_wbrm.objectives._utils import (
     check_finite,
@@ -105,19 +105,19 @@ class RobustDensityRatioLoss(LossModule):
             density_ratio (NestedKey): Where the ratio network writes ŵ. Defaults to ``"density_ratio"``.
         """
 
-        behaviour: NestedKey = "behaviour"
-        expert: NestedKey = "expert"
+        behaviour: NestedKey = BEHAVIOUR
+        expert: NestedKey = EXPERT
         density_ratio: NestedKey = DENSITY_RATIO
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
     out_keys = [
-        "loss_density_ratio",
+        LOSS_DENSITY_RATIO,
         "density_ratio_behaviour_mean",
         "density_ratio_expert_mean",
         "density_ratio_min",
         "density_ratio_max",
-        "density_ratio_ess",
+        DENSITY_RATIO_ESS,
         "normalisation_penalty",
     ]
 
@@ -273,7 +273,7 @@ class RobustDensityRatioLoss(LossModule):
                 "density_ratio_expert_mean": expert_mean.detach(),
                 "density_ratio_min": low.min(),
                 "density_ratio_max": high.max(),
-                "density_ratio_ess": effective_sample_size(ess_weights),
+                DENSITY_RATIO_ESS: effective_sample_size(ess_weights),
                 "normalisation_penalty": penalty.detach(),
             }
         return loss, diagnostics
@@ -294,4 +294,4 @@ class RobustDensityRatioLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes ``"loss_density_ratio"`` and the detached diagnostics (see the class docstring)."""
         loss, diagnostics = self.density_ratio_loss(tensordict)
-        return TensorDict({"loss_density_ratio": loss, **diagnostics}, batch_size=[])
+        return TensorDict({LOSS_DENSITY_RATIO: loss, **diagnostics}, batch_size=[])

@@ -15,7 +15,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
 from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
-from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT, WEIGHT_ESS
 from torchrl_wbrm.modules.maximisers import (
     ActionMaximiser,
     ActorMaximiser,
@@ -500,7 +500,7 @@ class WeightedBellmanLoss(LossModule):
         if self._out_keys is None:
             keys = ["loss_value", "td_error_mean", "td_error_abs_mean", "q_mean", "target_value_mean"]
             if self.use_weights:
-                keys += ["weight_mean", "weight_ess"]
+                keys += ["weight_mean", WEIGHT_ESS]
             if self.has_actor:
                 keys += ["loss_actor", "actor_q_mean", "actor_q_abs_mean"]
                 if self.bc_alpha is not None:
@@ -831,7 +831,7 @@ class WeightedBellmanLoss(LossModule):
                 if mask is not None:
                     weights = torch.where(mask, weights, torch.zeros_like(weights))
                 diagnostics["weight_mean"] = _masked_mean(weights, mask)
-                diagnostics["weight_ess"] = effective_sample_size(weights)
+                diagnostics[WEIGHT_ESS] = effective_sample_size(weights)
         return loss, diagnostics
 
     def _reads_priority(self, tensordict: TensorDictBase) -> bool:

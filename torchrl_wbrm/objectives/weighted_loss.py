@@ -10,7 +10,7 @@ from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT
+from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT, WEIGHT_ESS
 from torchrl_wbrm.objectives._utils import check_reduction, checks_run, per_sample
 from torchrl_wbrm.objectives.functional import effective_sample_size, per_sample_weight, weighted_reduce
 
@@ -283,7 +283,7 @@ class WeightedLoss(LossModule):
 
     @property
     def out_keys(self) -> list[NestedKey]:
-        return [*self.loss_module.out_keys, "weight_ess"]
+        return [*self.loss_module.out_keys, WEIGHT_ESS]
 
     # ---------------------------------------------------------------- the weights
     def _weight(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -344,5 +344,5 @@ class WeightedLoss(LossModule):
             else:
                 out.set(key, terms.get(key))
         with torch.no_grad():
-            out.set("weight_ess", effective_sample_size(weight))
+            out.set(WEIGHT_ESS, effective_sample_size(weight))
         return out

@@ -21,7 +21,7 @@ from torch import nn
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
-from torchrl_wbrm.keys import DENSITY_RATIO
+from torchrl_wbrm.keys import BEHAVIOUR, DENSITY_RATIO, EXPERT, HELD_OUT_LOSS, LOSS_DENSITY_RATIO
 from torchrl_wbrm.data import PairedSampler, make_replay_buffer
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
@@ -260,7 +260,7 @@ class DensityRatioFitter:
         self.batch_size = int(batch_size)
         self.sampler = PairedSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, keys=self.keys)
         self.holdout = TensorDict(
-            {"behaviour": b_hold.select(*self.keys), "expert": e_hold.select(*self.keys)}, batch_size=[]
+            {BEHAVIOUR: b_hold.select(*self.keys), EXPERT: e_hold.select(*self.keys)}, batch_size=[]
         ).to(self.device)
         self.num_steps = 0
         #: the early-stopping record: best held-out ``loss``, its ``step``, the network's ``state`` then, and
@@ -268,7 +268,7 @@ class DensityRatioFitter:
         #: and its held-out loss, so a fit that only got worse returns the state it started from.
         self.best = {"loss": math.inf, "state": copy.deepcopy(self.network.state_dict()), "bad": 0, "step": 0}
         with torch.no_grad():
-            initial = self.loss_module(self.holdout)["loss_density_ratio"].item()
+            initial = self.loss_module(self.holdout)[LOSS_DENSITY_RATIO].item()
         if math.isfinite(initial):
             self.best["loss"] = initial
         #: the held-out loss of the network's initial state (the reference the "only got worse" rule compares with)
@@ -296,7 +296,7 @@ class DensityRatioFitter:
 
         loss = self.loss_module
         dtype = next(iter(loss.parameters())).dtype
-        ones = [torch.ones(self.holdout[side].shape[0], dtype=dtype) for side in ("behaviour", "expert")]
+        ones = [torch.ones(self.holdout[side].shape[0], dtype=dtype) for side in (BEHAVIOUR, EXPERT)]
         return basu_power_divergence(*ones, alpha=loss.alpha, relative_beta=loss.relative_beta,
                                      non_negative_correction=loss.non_negative_correction).item()
 
@@ -387,7 +387,7 @@ class DensityRatioFitter:
         if batch.device != self.device:
             batch = batch.to(self.device)
         out = self.loss_module(batch)
-        loss = out["loss_density_ratio"]
+        loss = out[LOSS_DENSITY_RATIO]
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.grad_clip:
@@ -400,8 +400,8 @@ class DensityRatioFitter:
     def held_out_figures(self) -> dict[str, float]:
         """The loss's figures on the held-out sets with the network's current state (``"held_out_loss"`` first)."""
         out = self.loss_module(self.holdout)
-        figures = {"held_out_loss": out["loss_density_ratio"].item()}
-        figures.update({k: v.item() for k, v in out.items() if k != "loss_density_ratio" and v.ndim == 0})
+        figures = {HELD_OUT_LOSS: out[LOSS_DENSITY_RATIO].item()}
+        figures.update({k: v.item() for k, v in out.items() if k != LOSS_DENSITY_RATIO and v.ndim == 0})
         return figures
 
     @torch.no_grad()
@@ -414,7 +414,7 @@ class DensityRatioFitter:
         whether to stop on it (:meth:`fit` raises).
         """
         step = self.num_steps if step is None else int(step)
-        held_out = self.loss_module(self.holdout)["loss_density_ratio"].item()
+        held_out = self.loss_module(self.holdout)[LOSS_DENSITY_RATIO].item()
         best = self.best
         best["evaluations"] = best.get("evaluations", 0) + 1
         if math.isfinite(held_out):  # the worst held-out loss seen (the "only got worse" rule of verdict)
@@ -424,7 +424,7 @@ class DensityRatioFitter:
             best.update(loss=held_out, state=copy.deepcopy(self.network.state_dict()), bad=0, step=step)
         else:
             best["bad"] += 1
-        return {"held_out_loss": held_out, "improved": improved, "stop": best["bad"] >= self.patience}
+        return {HELD_OUT_LOSS: held_out, "improved": improved, "stop": best["bad"] >= self.patience}
 
     def best_network(self) -> TensorDictModule:
         """Load the best held-out state into the network (shared with the loss) and return the network."""
@@ -470,11 +470,11 @@ class DensityRatioFitter:
             if step % eval_every == 0 or step == steps:
                 result = self.evaluate(step)
                 record = {"step": step, **{k: float(v) for k, v in figures.items()},
-                          "held_out_loss": result["held_out_loss"]}
+                          HELD_OUT_LOSS: result[HELD_OUT_LOSS]}
                 history.append(record)
                 if callback is not None:
                     callback(step, record)
-                if not math.isfinite(result["held_out_loss"]):
+                if not math.isfinite(result[HELD_OUT_LOSS]):
                     raise FloatingPointError(f"The held-out density-ratio loss is {result['held_out_loss']} at "
                                              f"step {step}; lower the learning rate or clip the gradients.")
                 if result["stop"]:

@@ -11,7 +11,7 @@ from typing import Callable
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE, EXPERT_LIKE
 from torchrl_wbrm.evaluation import ratio_error
 from torchrl_wbrm.objectives.functional import relative_density_ratio
 from torchrl_wbrm.ratio.storing import compute_density_ratio, store_density_ratio
@@ -121,7 +121,7 @@ def weights_over(data: TensorDictBase, *, source: str, network=None, true_ratio:
     if expert_like or mark_expert_like:
         rows, figures = expert_like_figures(raw, data[EPISODE], true_expert_episodes)
         if mark_expert_like:
-            data.set("expert_like", rows.reshape(data.shape))
+            data.set(EXPERT_LIKE, rows.reshape(data.shape))
     w = raw
     if aggregate == "episode" and source != "none":
         w = episode_weights(w, data[EPISODE])

@@ -26,6 +26,7 @@ from typing import Iterable
 
 from torchrl.record.loggers import get_logger
 
+from torchrl_wbrm.keys import DENSITY_RATIO_ESS, LOSS_DENSITY_RATIO, WEIGHT_ESS
 from torchrl_wbrm._console import quiet_libraries
 
 __all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_run_summary", "log_study_summary",
@@ -41,9 +42,9 @@ def configure_console(verbose: bool) -> None:
 
 #: The training figures a progress bar shows, in order of preference, with their short labels.
 PROGRESS_FIGURES = {
-    "loss_density_ratio": "loss", "density_ratio_ess": "ess",  # stage 1
+    LOSS_DENSITY_RATIO: "loss", DENSITY_RATIO_ESS: "ess",  # stage 1
     "loss_value": "loss", "loss_bc": "loss", "loss_qvalue": "loss_q", "loss_actor": "actor", "q_mean": "Q",
-    "weight_ess": "ess", "loss_cql": "cql", "entropy": "H",
+    WEIGHT_ESS: "ess", "loss_cql": "cql", "entropy": "H",
 }
 #: The most characters a progress bar's figures take: a 120-column line keeps them whole beside the bar and counts.
 PROGRESS_WIDTH = 44

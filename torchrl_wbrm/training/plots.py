@@ -11,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from torchrl_wbrm.keys import HELD_OUT_LOSS
 from torchrl_wbrm.algos import ALGOS  # noqa: E402
 
 __all__ = ["LOSS_NAMES", "LOSS_TITLES", "plot_ci_rows", "plot_run"]
@@ -106,7 +107,7 @@ def plot_run(history: list[dict], run_dir: str | os.PathLike, *, title: str = ""
     if ratio:
         ax = flat[i]
         i += 1
-        ax.plot([r["step"] for r in ratio], [r["held_out_loss"] for r in ratio], color="tab:purple")
+        ax.plot([r["step"] for r in ratio], [r[HELD_OUT_LOSS] for r in ratio], color="tab:purple")
         ax.set_title("stage 1: density ratio ŵ", fontsize=10)
         ax.set_ylabel("held-out ratio loss")
         ax.set_xlabel("step")

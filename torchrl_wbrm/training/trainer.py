@@ -36,7 +36,7 @@ from torchrl_wbrm.data.datasets import split_by_episode
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 from torchrl_wbrm.tasks import Evaluator, Task, cached_offline_datasets, get_task
 from torchrl_wbrm.evaluation import ratio_error
-from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, EPISODE, HISTORY, RESULTS
+from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, EPISODE, HELD_OUT_LOSS, HISTORY, RESULTS
 from torchrl_wbrm.modules import DensityRatioNetwork
 from torchrl_wbrm.modules.action_scaling import ActionScaling
 from torchrl_wbrm.objectives import RobustDensityRatioLoss
@@ -429,12 +429,12 @@ class WBRMTrainer:
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
         result = self.ratio_fitter.evaluate(step)
-        held_out = result["held_out_loss"]
-        record = {"stage": "ratio", "step": step, "held_out_loss": held_out}
+        held_out = result[HELD_OUT_LOSS]
+        record = {"stage": "ratio", "step": step, HELD_OUT_LOSS: held_out}
         record.update(self._ratio_truth_figures())
         self.history.append(record)
         if not math.isfinite(held_out):
-            raise TrainingDiverged("ratio evaluation", step, "held_out_loss", held_out)
+            raise TrainingDiverged("ratio evaluation", step, HELD_OUT_LOSS, held_out)
         self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
         return result["stop"]
 
