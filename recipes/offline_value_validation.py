@@ -145,8 +145,10 @@ def chosen(rows: list[dict], figure: str, sign: int) -> dict | None:
 
 
 def delivered_row(rec: dict) -> dict:
-    """The checkpoint row of the parameters the run delivered."""
-    return [r for r in rec["checkpoints"] if r["step"] == rec["delivered_step"]][-1]
+    """The checkpoint row of the parameters the cell's default delivers: LQR's is the last step's (``q.select=last``;
+    the study's LQR runs select only to record every criterion's figure), a Minari task's the run's own choice."""
+    step = rec["checkpoints"][-1]["step"] if rec["cell"] in LQR_CELLS else rec["delivered_step"]
+    return [r for r in rec["checkpoints"] if r["step"] == step][-1]
 
 
 def run_figures(rec: dict) -> dict:
@@ -159,7 +161,7 @@ def run_figures(rec: dict) -> dict:
         if all(r.get(key) is not None for r in rows):
             errors = [abs(r[key] - r["return"]) for r in rows]
             out[f"{key}:abs_error"] = sum(errors) / len(errors)
-            out[f"{key}:rel_error"] = sum(e / max(abs(r["return"]), 1e-12) for e, r in zip(errors, rows)) / len(rows)
+            out[f"{key}:rel_error"] = 100 * sum(e / max(abs(r["return"]), 1e-12) for e, r in zip(errors, rows)) / len(rows)
             out[f"{key}:spearman"] = spearman([r[key] for r in rows], online)
             last = rows[-1]
             out[f"{key}:last_error"] = last[key] - last["return"]
@@ -185,8 +187,8 @@ def report(records: list[dict]) -> str:
     figures = {c: [run_figures(r) for r in records if r["cell"] == c] for c in cells}
     seeds = {c: sorted(r["seed"] for r in records if r["cell"] == c) for c in cells}
     lines = ["### The estimate against every checkpoint's online return", "",
-             "| cell | seeds | checkpoints | mean online return | FQE: abs. error | FQE: rel. error | FQE: Spearman | "
-             "ŵ-FQE: abs. error | ŵ-FQE: rel. error | ŵ-FQE: Spearman |", "|---" * 10 + "|"]
+             "| cell | seeds | checkpoints | mean online return | FQE: abs. error | FQE: rel. error (%) | FQE: Spearman | "
+             "ŵ-FQE: abs. error | ŵ-FQE: rel. error (%) | ŵ-FQE: Spearman |", "|---" * 10 + "|"]
     for c in cells:
         digits = 3 if c in LQR_CELLS else 1
         recs = [r for r in records if r["cell"] == c]
@@ -195,21 +197,22 @@ def report(records: list[dict]) -> str:
         row = [c, f"{len(seeds[c])}", f"{n_ckpt}", mean_online]
         for key in ("offline_value", "offline_value_weighted"):
             row += [cell_text([f.get(f"{key}:abs_error", float("nan")) for f in figures[c]], digits),
-                    cell_text([f.get(f"{key}:rel_error", float("nan")) for f in figures[c]], 2),
+                    cell_text([f.get(f"{key}:rel_error", float("nan")) for f in figures[c]], 1),
                     cell_text([f.get(f"{key}:spearman", float("nan")) for f in figures[c]], 2)]
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "### The delivered policy's estimate against its final online evaluation", "",
-              "| cell | q.select | delivered return | FQE estimate | FQE: rel. error | ŵ-FQE estimate | "
-              "ŵ-FQE: rel. error |", "|---" * 7 + "|"]
+    lines += ["", "### The delivered policy's estimate against its online return", "",
+              "| cell | delivered by | online return | FQE estimate | FQE: error (%) | ŵ-FQE estimate | "
+              "ŵ-FQE: error (%) |", "|---" * 7 + "|"]
     for c in cells:
         digits = 3 if c in LQR_CELLS else 1
         recs = [r for r in records if r["cell"] == c]
-        row = [c, recs[0]["select"], cell_text([r["delivered_return"] for r in recs], digits)]
+        online = [r["delivered_return"] if delivered_row(r)["step"] == r["delivered_step"] else delivered_row(r)["return"]
+                  for r in recs]  # the final evaluation (eval.episodes) where it scored these parameters
+        row = [c, "last" if c in LQR_CELLS else recs[0]["select"], cell_text(online, digits)]
         for key in ("offline_value", "offline_value_weighted"):
             estimates = [delivered_row(r).get(key, float("nan")) for r in recs]
             row += [cell_text(estimates, digits),
-                    cell_text([(e - r["delivered_return"]) / abs(r["delivered_return"]) for e, r in zip(estimates, recs)],
-                              3)]
+                    cell_text([100 * (e - o) / abs(o) for e, o in zip(estimates, online)], 2)]
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", "### Regret@1 of each selection criterion (online return; 0 is the best checkpoint)", "",
               "| cell | best checkpoint's return | " + " | ".join(CRITERIA) + " |", "|---" * (2 + len(CRITERIA)) + "|"]

@@ -35,7 +35,7 @@ def test_the_figures_of_one_run_by_hand():
     rec = _record(returns=[1.0, 5.0, 3.0], values=[2.0, 4.0, 9.0], residuals=[0.5, 0.1, 0.1], delivered=30)
     f = m.run_figures(rec)
     assert f["offline_value:abs_error"] == pytest.approx((1 + 1 + 6) / 3)
-    assert f["offline_value:rel_error"] == pytest.approx((1 / 1 + 1 / 5 + 6 / 3) / 3)
+    assert f["offline_value:rel_error"] == pytest.approx(100 * (1 / 1 + 1 / 5 + 6 / 3) / 3)  # in percent
     assert f["offline_value:spearman"] == pytest.approx(0.5)  # ranks (1, 2, 3) against (1, 3, 2)
     assert f["offline_value:last_error"] == pytest.approx(6.0)
     assert f["regret:FQE estimate"] == pytest.approx(2.0)  # it ranks step 30 first: 5 − 3
