@@ -5,8 +5,8 @@ worker has them imported already. :func:`run_script` executes the same file as `
 with the command's ``sys.argv``, working directory and environment, captures what it writes to ``sys.stdout`` and
 ``sys.stderr``, and returns a :class:`subprocess.CompletedProcess` with the exit status ``python`` would give
 (``SystemExit``'s code; 1 and the traceback on stderr for an uncaught exception). Whatever the run changes in the
-process is put back afterwards: signal handlers, torch's thread count, warning filters, the libraries' log levels and
-``stops.RESUME_COMMAND``.
+process is put back afterwards: signal handlers, torch's thread count, warning filters and the libraries' log
+levels.
 
 What needs a process of its own stays a subprocess in the tests: signals sent from outside (SIGINT, SIGTERM,
 SIGKILL), two runs at once, output written by C code or by handlers bound to the real streams, and at least one test
@@ -36,15 +36,12 @@ def _restored_process_state(cwd, env: dict | None):
     import torch
 
     from torchrl_wbrm._console import CHATTY_LOGGERS
-    from torchrl_wbrm.training import stops
-
     saved_env = dict(os.environ)
     saved_cwd = os.getcwd()
     saved_argv, saved_path = list(sys.argv), list(sys.path)
     handlers = {sig: signal.getsignal(sig) for sig in _SIGNALS}
     threads = torch.get_num_threads()
     levels = {name: logging.getLogger(name).level for name in (*CHATTY_LOGGERS, "hydra")}
-    resume_command = stops.RESUME_COMMAND
     try:
         if env is not None:
             os.environ.clear()
@@ -62,7 +59,6 @@ def _restored_process_state(cwd, env: dict | None):
         torch.set_num_threads(threads)
         for name, level in levels.items():
             logging.getLogger(name).setLevel(level)
-        stops.RESUME_COMMAND = resume_command
 
 
 def _exit_code(code) -> tuple[int, str]:

@@ -466,11 +466,12 @@ def test_a_multi_seed_resume_of_another_configs_seeds_is_refused_before_anything
     ("outputs/run_1", "python recipes/wbrm_offline.py resume=outputs/run_1"),
     ("my runs/run 1", "python recipes/wbrm_offline.py 'resume=my runs/run 1'"),
 ])
-def test_the_printed_resume_command_is_quoted_for_the_shell(monkeypatch, run_dir, expected):
+def test_the_printed_resume_command_is_quoted_for_the_shell(run_dir, expected):
     from torchrl_wbrm.training import stops
 
-    monkeypatch.setattr(stops, "RESUME_COMMAND", "python recipes/wbrm_offline.py")
     assert stops.resume_command(Path(run_dir)) == expected
     assert shlex.split(expected)[-1] == f"resume={run_dir}"
     message = str(stops.RunInterrupted(signal.SIGINT, "q", 20, Path(run_dir)))
     assert message.endswith(f"Resume with: {expected}")
+    started = stops.RunInterrupted(signal.SIGINT, "q", 20, Path(run_dir)).with_command("wbrm-offline")
+    assert str(started).endswith("Resume with: wbrm-offline " + shlex.quote(f"resume={run_dir}"))

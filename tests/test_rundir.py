@@ -21,7 +21,7 @@ from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
 from torchrl_wbrm.training.config import WBRMConfig
 from torchrl_wbrm.training.hydra_guard import RunDirGuard
-from torchrl_wbrm.training.rundir import RunDirInUse, claim_run_dir, take_claim
+from torchrl_wbrm.training.rundir import RunDirInUse, claim_run_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the recipe's tiny budget (the issue's, with tiny data and networks)
@@ -64,7 +64,6 @@ def compose(*overrides: str, hydra: bool = True):
 def guard(config) -> Path:
     """Run the callback's checks; the run directory it settled on (its claim released again)."""
     claim = RunDirGuard.check(config)
-    take_claim(claim.path)
     claim.release()
     return Path(str(config.hydra.run.dir))
 

@@ -26,6 +26,7 @@ from torchrl_wbrm.training import WBRMTrainer, register_configs
 from torchrl_wbrm.training.results import write_json
 from torchrl_wbrm.training.resume import read_run_record
 from torchrl_wbrm.training import stops
+from torchrl_wbrm.training.rundir import RunDirClaim
 from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.config import PreparedConfig, prepare_config
 from torchrl_wbrm.training.logging import make_logger
@@ -80,32 +81,41 @@ def recipe_command() -> str:
 def wbrm_offline() -> None:
     """``wbrm-offline [overrides]`` (``python recipes/wbrm_offline.py``, ``python -m torchrl_wbrm``): the recipe,
     with a resume's run overrides restored (:func:`with_run_overrides`), so ``resume=X`` alone continues the run."""
-    stops.RESUME_COMMAND = recipe_command()
+    command = recipe_command()
     try:
         sys.argv[1:] = with_run_overrides(sys.argv[1:])
     except ValueError as err:  # a run record holding more than the recipe's settings: one line, nothing applied
         raise SystemExit(f"Refused (nothing was written): {err}") from None
-    hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")(RecipeRun())()
+    hydra.main(config_path=str(CONFIG_DIR), config_name="wbrm_offline", version_base="1.3")(RecipeRun(command))()
 
 
 class RecipeRun:
     """One invocation of the recipe, Hydra's task function: the Hydra callback
-    (:class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard`) hands it the config it prepared
-    (:meth:`take_prepared`, from its ``on_job_start``), and Hydra then calls it with the composed config."""
+    (:class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard`) hands it the config it prepared and the run
+    directory's claim (:meth:`take_prepared`, from its ``on_job_start``), and Hydra then calls it with the composed
+    config.
 
-    def __init__(self) -> None:
+    Args:
+        command: how the recipe was started (:func:`recipe_command`), for the resume command it prints.
+    """
+
+    def __init__(self, command: str = stops.RECIPE_COMMAND) -> None:
+        self.command = command
         self.prepared: PreparedConfig | None = None
+        self.claim: RunDirClaim | None = None
 
-    def take_prepared(self, prepared: PreparedConfig) -> None:
-        """Keep the config :class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard` prepared for this run."""
-        self.prepared = prepared
+    def take_prepared(self, prepared: PreparedConfig, claim: RunDirClaim | None = None) -> None:
+        """Keep the config :class:`~torchrl_wbrm.training.hydra_guard.RunDirGuard` prepared for this run, and its
+        claim on the run directory."""
+        self.prepared, self.claim = prepared, claim
 
     def __call__(self, cfg: DictConfig) -> None:
-        prepared, self.prepared = self.prepared, None
-        _wbrm_offline_app(cfg, prepared)
+        prepared, claim, self.prepared, self.claim = self.prepared, self.claim, None, None
+        _wbrm_offline_app(cfg, prepared, claim, self.command)
 
 
-def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None) -> None:
+def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None, claim: RunDirClaim | None,
+                      command: str) -> None:
     """Deep Weighted Bellman Residual Minimization, offline: stage 1 fits the density ratio ŵ, stage 2 fits Q*.
 
     Writes results.json, history.json, training_curve.png, evaluation.png, logs/ and checkpoint.pt in the run
@@ -117,9 +127,9 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None) -> None:
     # here, before any data are collected, when the app runs without it (a multirun's job)
     prepared = prepared or prepare_config(cfg)
     if cfg.seeds:
-        return _run_seeds(prepared, cfg, run_dir)
+        return _run_seeds(prepared, cfg, run_dir, command, claim)
     try:
-        trainer = _trainer(prepared, run_dir, cfg)
+        trainer = _trainer(prepared, run_dir, cfg, claim)
         trainer.logger = make_logger(
             cfg.logger, run_dir, f"wbrm_{cfg.env.name}_seed{cfg.seed}", OmegaConf.to_container(cfg, resolve=True)
         )
@@ -127,20 +137,20 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None) -> None:
     except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
         if (run_dir / "checkpoint.pt").is_file():
             print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
-                  f"{stops.resume_command(run_dir)}", file=sys.stderr)
+                  f"{stops.resume_command(run_dir, command)}", file=sys.stderr)
         else:
             print(f"Interrupted before the first checkpoint; no checkpoint was written to {run_dir}.", file=sys.stderr)
         sys.exit(130)
     except RunInterrupted as err:
-        print(err, file=sys.stderr)
+        print(err.with_command(command), file=sys.stderr)
         sys.exit(err.exit_code)
     except OSError as err:  # a full or read-only disk, the run directory removed: one line, the file and the disk
-        _stopped_on(err, cfg, run_dir)
+        _stopped_on(err, cfg, run_dir, command)
     results["wall_seconds"] = time.perf_counter() - start
     try:
         write_json(run_dir / RESULTS, results)
     except OSError as err:
-        _stopped_on(err, cfg, run_dir)
+        _stopped_on(err, cfg, run_dir, command)
     if results.get("status") == "diverged":
         print(results["diverged"]["message"], file=sys.stderr)
         print(f"run directory: {run_dir} (results.json has status 'diverged'; checkpoint.pt is the last finite state)",
@@ -150,11 +160,11 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None) -> None:
     print(f"run directory: {run_dir}")
 
 
-def _trainer(prepared, run_dir: Path, cfg) -> WBRMTrainer:
-    """The run's trainer; what it refuses once the data are built (a resume on data that differ from the
-    checkpoint's, a setting the data cannot carry out) is one line, exit status 1, before any training."""
+def _trainer(prepared, run_dir: Path, cfg, claim: RunDirClaim | None) -> WBRMTrainer:
+    """The run's trainer, holding ``claim``; what it refuses once the data are built (a resume on data that differ
+    from the checkpoint's, a setting the data cannot carry out) is one line, exit status 1, before any training."""
     try:
-        return WBRMTrainer(prepared, run_dir, logger=None, resume=bool(cfg.resume))
+        return WBRMTrainer(prepared, run_dir, logger=None, resume=bool(cfg.resume), claim=claim)
     except ValueError as err:
         if cfg.verbose:
             import traceback
@@ -164,7 +174,7 @@ def _trainer(prepared, run_dir: Path, cfg) -> WBRMTrainer:
         sys.exit(1)
 
 
-def _stopped_on(err: OSError, cfg, run_dir: Path) -> None:
+def _stopped_on(err: OSError, cfg, run_dir: Path, command: str) -> None:
     """A run stopped by the file system (a full or read-only disk, its directory removed): one line naming the file
     and why (the traceback only with ``verbose=true``), exit status 1."""
     if cfg.verbose:
@@ -173,19 +183,20 @@ def _stopped_on(err: OSError, cfg, run_dir: Path) -> None:
         traceback.print_exc()
     where = f" ({err.filename})" if getattr(err, "filename", None) and str(err.filename) not in str(err) else ""
     checkpoint = run_dir / "checkpoint.pt"
-    kept = (f" {checkpoint} holds the last checkpoint; resume with: {stops.resume_command(run_dir)}"
+    kept = (f" {checkpoint} holds the last checkpoint; resume with: {stops.resume_command(run_dir, command)}"
             if checkpoint.is_file() else "")
     print(f"Stopped: {' '.join(str(err).split())}{where}.{kept}", file=sys.stderr)
     sys.exit(1)
 
 
-def _run_seeds(prepared, cfg: DictConfig, run_dir: Path) -> None:
-    """``seeds=[...]``: the seeds trained together in one process (:func:`torchrl_wbrm.training.seeds.run_seeds`), each
-    in ``run_dir/seed<s>``; ``run_dir/results.json`` holds them all and the aggregate."""
+def _run_seeds(prepared, cfg: DictConfig, run_dir: Path, command: str, claim: RunDirClaim | None) -> None:
+    """``seeds=[...]``: the seeds trained in one process (:func:`torchrl_wbrm.training.seeds.run_seeds`), each in
+    ``run_dir/seed<s>``; ``run_dir/results.json`` holds them all and the aggregate. ``claim`` (``run_dir``'s) is held
+    until they end."""
     from torchrl_wbrm.training.seeds import run_seeds, summarise_seeds
 
-    resume = (f"Resume with: {stops.resume_command(run_dir)} (the finished seeds are kept; a seed with a checkpoint "
-              f"continues from it, the others run again)")
+    resume = (f"Resume with: {stops.resume_command(run_dir, command)} (the finished seeds are kept; a seed with a "
+              f"checkpoint continues from it, the others run again)")
     try:
         # each seed's trainer makes its logger in its folder (cfg.logger), after its own checks
         results = run_seeds(prepared, run_dir, resume=bool(cfg.resume))
@@ -198,7 +209,7 @@ def _run_seeds(prepared, cfg: DictConfig, run_dir: Path) -> None:
         print(f"Interrupted. {resume}", file=sys.stderr)
         sys.exit(130)
     except OSError as err:
-        _stopped_on(err, cfg, run_dir)
+        _stopped_on(err, cfg, run_dir, command)
     except ValueError as err:  # a seed's folder refused (its checkpoint, its config): one line
         if cfg.verbose:
             import traceback
@@ -206,6 +217,9 @@ def _run_seeds(prepared, cfg: DictConfig, run_dir: Path) -> None:
             traceback.print_exc()
         print(f"Refused: {' '.join(str(err).split())}", file=sys.stderr)
         sys.exit(1)
+    finally:
+        if claim is not None:
+            claim.release()
     print(summarise_seeds(results))
     print(f"run directory: {run_dir}")
     if results["seeds_diverged"]:

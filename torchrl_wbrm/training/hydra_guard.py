@@ -16,7 +16,6 @@ from torchrl_wbrm.training.rundir import (
     RunDirClaim,
     claim_run_dir,
     clear_run_outputs,
-    hand_over,
     holds_run,
     remove_empty,
     unique_dir,
@@ -33,8 +32,9 @@ class RunDirGuard(Callback):
     In ``on_run_start`` (before Hydra creates the run directory and writes ``.hydra/``):
 
     * the config is merged, resolved and validated, and its env's task built, once
-      (:func:`~torchrl_wbrm.training.config.prepare_config`); in ``on_job_start`` the guard hands both to the task
-      function when it takes them (its ``take_prepared(prepared)``, :class:`~torchrl_wbrm.cli.RecipeRun`'s);
+      (:func:`~torchrl_wbrm.training.config.prepare_config`); in ``on_job_start`` the guard hands both, with the
+      run directory's claim, to the task function when it takes them (its ``take_prepared(prepared, claim)``,
+      :class:`~torchrl_wbrm.cli.RecipeRun`'s);
     * the data on disk it names are read and checked (:meth:`~torchrl_wbrm.tasks.Task.check_data`: a Minari
       pair, or a saved dataset), and held for the run's trainer, which does not read them again;
     * ``resume=X``: Hydra's run directory becomes ``X`` (its record goes with the run it continues), ``X`` must hold
@@ -45,17 +45,18 @@ class RunDirGuard(Callback):
       (``<job name>.log``), nothing else;
     * a directory where something the run writes into (``.hydra/``, ``logs/``, ...) is a symbolic link is refused.
 
-    The claim is handed to the run's :class:`~torchrl_wbrm.training.WBRMTrainer` (:func:`take_claim`), which holds it
-    until the run ends. A refusal exits (``SystemExit``, status 1) with the reason in one line, and with the
+    The claim goes with the prepared config to the task function, which passes it to the run's
+    :class:`~torchrl_wbrm.training.WBRMTrainer` (``claim=``); the trainer holds it until the run ends. A refusal exits (``SystemExit``, status 1) with the reason in one line, and with the
     traceback before it only under ``verbose=true``; Hydra would only warn about an exception raised by a callback.
     """
 
     def __init__(self) -> None:
         self._prepared: PreparedConfig | None = None  # from on_run_start to this run's on_job_start
+        self._claim: RunDirClaim | None = None
 
     def on_run_start(self, config, **kwargs) -> None:
         try:
-            self._prepared, _ = self.checked(config)
+            self._prepared, self._claim = self.checked(config)
         except (ValueError, TypeError, KeyError, OSError, RuntimeError, OmegaConfBaseException) as err:
             if _verbose(config):
                 traceback.print_exc()
@@ -63,11 +64,13 @@ class RunDirGuard(Callback):
             raise SystemExit(f"Refused (nothing was written): {reason}") from err
 
     def on_job_start(self, config, *, task_function, **kwargs) -> None:
-        """Hand the config prepared in :meth:`on_run_start` to the task function, when it takes one."""
-        prepared, self._prepared = self._prepared, None
+        """Hand the config prepared in :meth:`on_run_start` and the claim to the task function, when it takes them."""
+        prepared, claim, self._prepared, self._claim = self._prepared, self._claim, None, None
         take = getattr(task_function, "take_prepared", None)
         if prepared is not None and take is not None:
-            take(prepared)
+            take(prepared, claim)
+        elif claim is not None:  # a task function that takes no claim claims its directory itself
+            claim.release()
 
     @staticmethod
     def check(config) -> RunDirClaim:
@@ -108,7 +111,6 @@ class RunDirGuard(Callback):
                 if cfg.overwrite and holds_run(run_dir):  # the earlier run goes, its record and Hydra's job log too
                     clear_run_outputs(run_dir, hydra_record=True, job_name=_job_name(config))
         _set_run_dir(config, run_dir)
-        hand_over(claim)
         return prepared, claim
 
 

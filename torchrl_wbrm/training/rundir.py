@@ -25,8 +25,8 @@ except ImportError:  # pragma: no cover - Windows
 from torchrl_wbrm.keys import CHECKPOINT, HISTORY, RESULTS
 
 __all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim", "RunDirInUse", "check_run_dir",
-           "claim_run_dir", "clear_run_outputs", "hand_over", "holds_run", "linked_outputs", "refuse_links",
-           "remove_empty", "take_claim", "unique_dir"]
+           "claim_run_dir", "clear_run_outputs", "holds_run", "linked_outputs", "refuse_links",
+           "remove_empty", "unique_dir"]
 
 
 #: Files that mark a directory as holding a run.
@@ -229,21 +229,6 @@ def claim_run_dir(run_dir: str | os.PathLike) -> RunDirClaim:
             ) from err
         return RunDirClaim(path, -1)  # a file system without flock: unlocked, as before
     return RunDirClaim(path, fd)
-
-
-#: Claims taken before a run's trainer exists (by :class:`RunDirGuard`), handed to it by :func:`take_claim`.
-_HANDED_OVER: dict[str, RunDirClaim] = {}
-
-
-def hand_over(claim: RunDirClaim) -> None:
-    """Keep ``claim`` for the trainer of the same run directory in this process (:func:`take_claim`)."""
-    _HANDED_OVER[os.path.realpath(claim.path)] = claim
-
-
-def take_claim(run_dir: str | os.PathLike) -> RunDirClaim | None:
-    """The claim :func:`hand_over` kept for ``run_dir`` (once), or ``None``."""
-    claim = _HANDED_OVER.pop(os.path.realpath(run_dir), None)
-    return claim if claim is not None and claim.held else None
 
 
 def unique_dir(path: Path) -> Path:

@@ -14,7 +14,7 @@ import torch
 
 from torchrl_wbrm.keys import CHECKPOINT
 
-__all__ = ["RESUME_COMMAND", "QBound", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
+__all__ = ["RECIPE_COMMAND", "QBound", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
            "non_finite_parameter"]
 
 
@@ -30,31 +30,36 @@ class TrainingDiverged(RuntimeError):
         )
 
 
-#: the command the resume hint of :class:`RunInterrupted` starts with (the entry point sets how it was started)
-RESUME_COMMAND = "python recipes/wbrm_offline.py"
+#: the recipe's command, as the resume hint names it unless told how the recipe was started
+RECIPE_COMMAND = "python recipes/wbrm_offline.py"
 
 
-def resume_command(run_dir) -> str:
-    """The command that resumes the run in ``run_dir``, as a shell reads it: :data:`RESUME_COMMAND` and
-    ``resume=<run dir>``, the override quoted (``shlex.quote``) where the path holds a space or another character a
-    shell would split on."""
+def resume_command(run_dir, command: str = RECIPE_COMMAND) -> str:
+    """The command that resumes the run in ``run_dir``, as a shell reads it: ``command`` (how the recipe was
+    started, :func:`torchrl_wbrm.cli.recipe_command`) and ``resume=<run dir>``, the override quoted
+    (``shlex.quote``) where the path holds a space or another character a shell would split on."""
     import shlex
 
-    return f"{RESUME_COMMAND} {shlex.quote(f'resume={run_dir}')}"
+    return f"{command} {shlex.quote(f'resume={run_dir}')}"
 
 
 class RunInterrupted(Exception):
     """SIGINT or SIGTERM stopped the run after a checkpoint; ``signal_name``, ``stage``, ``step``, ``run_dir``."""
 
-    def __init__(self, signum: int, stage: str, step: int, run_dir: Path, *, during: str | None = None):
+    def __init__(self, signum: int, stage: str, step: int, run_dir: Path, *, during: str | None = None,
+                 command: str = RECIPE_COMMAND):
         self.signum, self.stage, self.step, self.run_dir = signum, stage, step, Path(run_dir)
         self.signal_name = signal.Signals(signum).name
         self.during = during
         where = f"during the {during} " if during else ""
         super().__init__(
             f"{self.signal_name} received: stopped {where}in stage {stage!r} at step {step}, checkpoint written to "
-            f"{self.run_dir / CHECKPOINT}. Resume with: {resume_command(self.run_dir)}"
+            f"{self.run_dir / CHECKPOINT}. Resume with: {resume_command(self.run_dir, command)}"
         )
+
+    def with_command(self, command: str) -> "RunInterrupted":
+        """The same stop, its resume hint naming ``command`` (how the recipe was started)."""
+        return RunInterrupted(self.signum, self.stage, self.step, self.run_dir, during=self.during, command=command)
 
     @property
     def exit_code(self) -> int:

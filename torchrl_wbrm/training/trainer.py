@@ -55,7 +55,7 @@ from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criteri
 from torchrl_wbrm.training.results import pause_for_test, write_json
 from torchrl_wbrm.training.run_results import diverged_results, finished_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
-from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, take_claim, unique_dir
+from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, unique_dir
 from torchrl_wbrm.training.stops import (
     QBound,
     RunInterrupted,
@@ -108,6 +108,7 @@ class WBRMTrainer:
             through the API writes the files the recipe writes.
         resume: continue from ``run_dir/checkpoint.pt``.
         progress: show tqdm bars.
+        claim: ``run_dir``'s claim, taken already (by the recipe's Hydra callback); ``None``: the trainer claims it.
         evaluation: build the task's evaluator (``False``: no evaluation env or simulation is built, and the trainer
             can value its policy from D alone, :meth:`offline_value`, but not train or evaluate; a run with
             ``ratio.source=exact`` needs the evaluator's exact ratio).
@@ -119,7 +120,7 @@ class WBRMTrainer:
     """
 
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger="config", resume: bool = False,
-                 progress: bool = True, evaluation: bool = True):
+                 progress: bool = True, evaluation: bool = True, claim: RunDirClaim | None = None):
         self._claim: RunDirClaim | None = None
         self.evaluation = evaluation
         # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
@@ -144,12 +145,21 @@ class WBRMTrainer:
         if not resume:
             self.run_dir.mkdir(parents=True, exist_ok=True)
         self._claim, self._resume_sd = check_run_request(self.cfg, self.run_dir, resume=resume,
-                                                         claim=take_claim(self.run_dir), task=self.task)
+                                                         claim=self._given_claim(claim), task=self.task)
         try:
             self._init(resume, logger, progress)
         except BaseException:
             self.release()
             raise
+
+    def _given_claim(self, claim: RunDirClaim | None) -> RunDirClaim | None:
+        """``claim`` where it is a held claim of this run's directory (``None``: none given or no longer held); a claim
+        of another directory is refused."""
+        if claim is None or not claim.held:
+            return None
+        if os.path.realpath(claim.path) != os.path.realpath(self.run_dir):
+            raise ValueError(f"claim= holds {claim.path}, not this run's directory {self.run_dir}.")
+        return claim
 
     def release(self) -> None:
         """Release the claim on the run directory (:meth:`run` takes it again)."""
