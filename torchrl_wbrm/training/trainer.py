@@ -4,8 +4,10 @@ Stage 1 fits ŵ with :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` on
 for early stopping; ŵ is then computed *once* over D and stored in D's replay buffer under ``"density_ratio"``
 (optionally shaped and self-normalised), never recomputed per batch. Both are :mod:`torchrl_wbrm.ratio`'s public
 pieces (:class:`~torchrl_wbrm.ratio.DensityRatioFitter`, stepped and evaluated from this trainer's loop, and
-:func:`~torchrl_wbrm.ratio.store_density_ratio`), which a script can use without a trainer. Stage 2 trains Q (and the actor) with
-:class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's ``SoftUpdate`` and periodic evaluation.
+:func:`~torchrl_wbrm.ratio.weights_over`, the hand-over to stage 2 in one call), which a script can use without a
+trainer. Stage 2 trains Q (and the actor) with :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's
+``SoftUpdate`` and periodic evaluation; ``q.select`` is :mod:`torchrl_wbrm.training.selection`'s, the checkpoint
+format :mod:`torchrl_wbrm.training.checkpoint`'s and ``results.json`` :mod:`torchrl_wbrm.training.run_results`'.
 
 Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.algos` (one file per algorithm)
 builds each method's loss, optimisers, step function and evaluated policy; stage 1 runs only for an algo registered
@@ -14,8 +16,10 @@ env-specific (the data, the action box, γ, the evaluator and the ground truth) 
 :class:`~torchrl_wbrm.tasks.Task`: the trainer never asks which env it runs.
 
 Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
-evaluation and checkpoints. A checkpoint holds the models, optimisers, early-stopping state, RNG states, step and
-history; ``WBRMTrainer(cfg, run_dir, resume=True)`` continues from it and ends bit-identical to an uninterrupted run.
+evaluation, checkpoints and the stops (divergence, signals, Q's bound: :mod:`torchrl_wbrm.training.stops`); the seeds
+of ``seeds=[...]`` run through it one after another (:mod:`torchrl_wbrm.training.seeds`). A checkpoint holds the
+models, optimisers, early-stopping state, RNG states, step and history; ``WBRMTrainer(cfg, run_dir, resume=True)``
+continues from it and ends bit-identical to an uninterrupted run.
 """
 from __future__ import annotations
 
