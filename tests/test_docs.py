@@ -192,3 +192,14 @@ def test_the_readmes_python_api_runs_as_written(tmp_path):
     runs = list((tmp_path / "outputs" / "wbrm_offline" / "lqr_exp1").glob("*_seed0"))
     assert len(runs) == 1 and (runs[0] / "results.json").is_file(), runs
     assert str(runs[0].relative_to(tmp_path)) in proc.stdout.splitlines()[-1], proc.stdout
+
+
+def test_the_method_page_names_every_equation_of_functional():
+    """Each equation is implemented once, in ``objectives/functional.py``, and the method page links every one of them
+    (and holds no control character a Python escape would have left in its LaTeX)."""
+    from torchrl_wbrm.objectives import functional
+
+    page = (DOCS / "method.md").read_text()
+    missing = [name for name in functional.__all__ if name.islower() and f"functional.{name}`" not in page]
+    assert missing == [], f"docs/method.md does not link {missing}"
+    assert not [c for c in page if ord(c) < 32 and c != "\n"], "docs/method.md holds a control character"
