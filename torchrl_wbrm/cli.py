@@ -19,7 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_wbrm.keys import METADATA, RESULTS
+from torchrl_wbrm.keys import CHECKPOINT, METADATA, RESULTS
 from torchrl_wbrm.configs import CONFIG_DIR
 from torchrl_wbrm.tasks import get_task
 from torchrl_wbrm.training import WBRMTrainer, register_configs
@@ -135,7 +135,7 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None, claim: R
         )
         results = trainer.run()
     except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
-        if (run_dir / "checkpoint.pt").is_file():
+        if (run_dir / CHECKPOINT).is_file():
             print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
                   f"{stops.resume_command(run_dir, command)}", file=sys.stderr)
         else:
@@ -182,7 +182,7 @@ def _stopped_on(err: OSError, cfg, run_dir: Path, command: str) -> None:
 
         traceback.print_exc()
     where = f" ({err.filename})" if getattr(err, "filename", None) and str(err.filename) not in str(err) else ""
-    checkpoint = run_dir / "checkpoint.pt"
+    checkpoint = run_dir / CHECKPOINT
     kept = (f" {checkpoint} holds the last checkpoint; resume with: {stops.resume_command(run_dir, command)}"
             if checkpoint.is_file() else "")
     print(f"Stopped: {' '.join(str(err).split())}{where}.{kept}", file=sys.stderr)

@@ -407,7 +407,7 @@ class OfflineDatasets:
         path = Path(path)
         if not path.is_dir():
             raise FileNotFoundError(f"No dataset directory at {path} (make one with OfflineDatasets.save).")
-        meta_file = path / "metadata.json"
+        meta_file = path / METADATA
         if not meta_file.is_file():
             raise FileNotFoundError(f"{path} is not a dataset: it has no metadata.json.")
         try:
