@@ -32,6 +32,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SoftUpdate
 
 from torchrl_wbrm.evaluation.stats import bootstrap_ci
+from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.modules import make_q_network
 from torchrl_wbrm.objectives import FQELoss
 
@@ -85,7 +86,7 @@ def _step_index(data: TensorDictBase) -> torch.Tensor:
     step = data.get("step_count", None)
     if step is not None:
         return step.reshape(data.shape[0]).long()
-    episode = data.get("episode", None)
+    episode = data.get(EPISODE, None)
     if episode is None:
         raise KeyError("Finite-horizon FQE needs each row's step in its episode: D holds neither 'step_count' nor "
                        f"'episode' (it holds {sorted(str(k) for k in data.keys(True, True))}).")

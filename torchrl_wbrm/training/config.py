@@ -229,10 +229,10 @@ class EvalConfig:
             the environment (:mod:`torchrl_wbrm.training.offline_value`: FQE on D's training episodes, and ŵ-weighted
             where stage 2 weighted them), the same quantity as the online ``return``; written to ``results.json`` as
             ``final.offline_value`` with its 95% bootstrap interval over D's episodes.
-        offline_value_steps: FQE's gradient steps for each of those estimates. The default fits LQR's 20-step
-            return (exp1: within 0.2 of the online return); a return over hundreds of undiscounted steps needs far
-            more (the MountainCar Minari example's: 250 at 2000 steps and 211 at 5000 against 95 online), which
-            is why the estimate is opt-in: its interval covers the start states only, not the fit's error.
+        offline_value_steps: FQE's gradient steps for each of those estimates. A discounted return over a few dozen
+            steps (LQR's) is fitted at the default; an undiscounted return over hundreds of steps needs far more,
+            which is why the estimate is opt-in, and its interval covers the start states only, not the fit's error
+            (docs: results/offline_value).
         offline_value_weights: the weights of the ŵ-weighted estimate (``final.offline_value_weighted``):
             ``"stage2"`` (the default), the weights stage 2 gave D's rows (``ratio.temper``, ``ratio.clip``,
             ``ratio.aggregate``, ``ratio.mix`` applied); ``"ratio"``, ratio-weighted FQE: the fitted ŵ itself before

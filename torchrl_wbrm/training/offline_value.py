@@ -28,6 +28,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 
+from torchrl_wbrm.keys import DENSITY_RATIO, EPISODE
 from torchrl_wbrm.ope.offline_value import OfflineValue, estimate_offline_value
 
 __all__ = ["offline_value_figures"]
@@ -56,13 +57,13 @@ def offline_value_figures(
         return {}, {"skipped": "the evaluator does not state which return it reports", "uses_environment": False}
     gamma, horizon = quantity
     policy = copy.deepcopy(actor).to("cpu").eval()
-    rows = data.select("observation", "action", "step_count", "episode", "next", strict=False).to("cpu")
+    rows = data.select("observation", "action", "step_count", EPISODE, "next", strict=False).to("cpu")
     unweighted = estimate_offline_value(policy, rows, gamma=gamma, horizon=horizon, steps=steps, seed=seed)
     final = _figures("offline_value", unweighted)
     if weights is not None:
-        rows = rows.clone(False).set("density_ratio", weights.reshape(rows.shape[0], 1).to(rows['observation'].dtype))
+        rows = rows.clone(False).set(DENSITY_RATIO, weights.reshape(rows.shape[0], 1).to(rows["observation"].dtype))
         weighted = estimate_offline_value(policy, rows, gamma=gamma, horizon=horizon, steps=steps, seed=seed,
-                                          weight_key="density_ratio")
+                                          weight_key=DENSITY_RATIO)
         final.update(_figures("offline_value_weighted", weighted))
     record = {"quantity": unweighted.quantity, "episodes": unweighted.episodes, "steps": steps,
               "weighted": weights is not None, "uses_environment": False}
