@@ -62,7 +62,7 @@ def compose(overrides: list[str]):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from configs import CONFIG_DIR
+    from torchrl_wbrm.configs import CONFIG_DIR
     from torchrl_wbrm.training.config import register_configs
 
     register_configs()

@@ -130,6 +130,9 @@ class Task(ABC):
         """``env``: the env config (:class:`~torchrl_wbrm.tasks.EnvConfig`, or an OmegaConf node of one)."""
         self.env = env
         self.datasets: OfflineDatasets | None = None
+        #: the seconds :meth:`check_data` took where the run's checks called it (reading the data on disk before the
+        #: run starts): counted in the run's ``data_seconds`` and ``wall_seconds``
+        self.check_seconds = 0.0
 
     # ------------------------------------------------------------------ before any data
     def check_config(self, cfg) -> None:

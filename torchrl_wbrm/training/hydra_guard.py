@@ -3,6 +3,7 @@
 """
 from __future__ import annotations
 
+import time
 import traceback
 from pathlib import Path
 
@@ -82,7 +83,9 @@ class RunDirGuard(Callback):
         """:meth:`check`, returning the prepared config too."""
         prepared = prepare_config(_task_config(config))
         cfg, task = prepared
-        task.check_data()  # bad data are refused here, before anything is written
+        start = time.perf_counter()
+        task.check_data()  # bad data are refused here, before anything is written (and held for the run)
+        task.check_seconds = time.perf_counter() - start
         raw_dir = OmegaConf.to_container(config.hydra.run, resolve=False)["dir"]
         dated = isinstance(raw_dir, str) and "${now:" in raw_dir
         if cfg.resume:

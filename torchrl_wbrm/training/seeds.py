@@ -149,7 +149,7 @@ def run_seeds(cfg, run_dir, *, progress: bool = True, loggers: dict | None = Non
         timing["setup"] += t1 - t0
         timing["training"] += time.perf_counter() - t1
     runs = [runs_by_seed[int(s)] for s in cfg.seeds]
-    timing["total"] = time.perf_counter() - start
+    timing["total"] = time.perf_counter() - start + prepared.task.check_seconds  # the checks' data read too
     results = _combined(cfg, runs, timing=timing, task=prepared.task)
     results["wall_seconds"] = timing["total"]
     write_json(run_dir / RESULTS, results)

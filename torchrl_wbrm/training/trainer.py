@@ -237,7 +237,7 @@ class WBRMTrainer:
         else:
             self.datasets = self.task.make_datasets(seed=self.cfg.seed)
         self.task.attach(self.datasets)
-        self.data_seconds = time.perf_counter() - t0
+        self.data_seconds = time.perf_counter() - t0 + self.task.check_seconds  # the checks' read of the data too
         d = self.datasets.transitions[:]
         gen = torch.Generator().manual_seed(self.cfg.seed + 23)
         self.q_train_data, self.q_holdout = split_by_episode(d, self.cfg.q.holdout_fraction, generator=gen)
