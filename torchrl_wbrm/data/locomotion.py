@@ -188,11 +188,11 @@ def locomotion_table(rows: list[dict]) -> str:
 def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str = "benchmark",
                          transitions: int = DEFAULT_TRANSITIONS, expert_shares=DEFAULT_EXPERT_SHARES,
                          pool_episodes: int = DEFAULT_POOL_EPISODES, overwrite: bool = False,
-                         log=print) -> dict:
+                         medium: bool = True, log=print) -> dict:
     """Write task ``name``'s datasets under ``data_path``; returns their ids and make-up (``"datasets"``: episodes,
     transitions, the expert's episodes and transitions, the mean return), the reference scores and the seconds
     the collection took. Every id is validated, and an existing one refused unless ``overwrite``, before anything
-    is collected or removed."""
+    is collected or removed. ``medium=False`` writes no ``medium-v0`` (and names none)."""
     import shutil
 
     from torchrl_wbrm.policies.locomotion import load_locomotion_policy
@@ -204,6 +204,8 @@ def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str 
     if int(transitions) < 1000:
         raise ValueError(f"--transitions must be at least 1000, got {transitions}.")
     ids = locomotion_ids(name, namespace, shares)
+    if not medium:
+        del ids["medium"]
     # every id checked (syntax, inside the data path, new unless overwrite) before anything is removed or written
     folders = check_new_minari_ids(ids.values(), data_path, setting="--namespace (or --data-path)",
                                    overwrite=overwrite)
@@ -228,7 +230,7 @@ def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str 
         return rng.uniform(low, high).astype(np.float32)
 
     expert = noisy(load_locomotion_policy(name, "expert"))
-    medium_policy = noisy(load_locomotion_policy(name, "medium"))
+    medium_policy = noisy(load_locomotion_policy(name, "medium")) if medium else None
     ref_min, ref_max = D4RL_REFERENCE_SCORES[name]
     common = dict(data_path=data_path, env=task.env_id, eval_env=task.env_id, ref_min_score=ref_min,
                   ref_max_score=ref_max)
@@ -276,11 +278,13 @@ def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str 
                         f"transitions", metadata={"expert_episode_ids": expert_ids}, **common)
         make_up(dataset_id, episodes, expert_ids, time.time() - t0 + collect_seconds / len(shares))
 
-    t0 = time.time()
-    medium = _collect_until(task.env_id, medium_policy, transitions, seed + 60_000, 4)
-    write_minari_dataset(ids["medium"], medium, algorithm_name=f"an earlier checkpoint of the SAC expert; {noise}",
-                         description=f"torchrl_wbrm benchmark: {task.env_id} medium, {_steps(medium):,} transitions",
-                         metadata={"expert_episode_ids": []}, **common)
-    make_up(ids["medium"], medium, [], time.time() - t0)
+    if medium:
+        t0 = time.time()
+        episodes = _collect_until(task.env_id, medium_policy, transitions, seed + 60_000, 4)
+        write_minari_dataset(ids["medium"], episodes,
+                             algorithm_name=f"an earlier checkpoint of the SAC expert; {noise}",
+                             description=f"torchrl_wbrm benchmark: {task.env_id} medium, {_steps(episodes):,} "
+                                         f"transitions", metadata={"expert_episode_ids": []}, **common)
+        make_up(ids["medium"], episodes, [], time.time() - t0)
     return {"task": name, "env_id": task.env_id, **ids, "ref_min_score": ref_min, "ref_max_score": ref_max,
             "datasets": datasets, "seconds": round(time.time() - start, 1)}
