@@ -131,8 +131,12 @@ def done_runs(path: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------------- reporting
 def spearman(x: list[float], y: list[float]) -> float:
-    """Spearman's rank correlation (average ranks for ties)."""
+    """Spearman's rank correlation (average ranks for ties); NaN where either side is constant (every checkpoint at
+    the same return: no ranking to recover)."""
     from scipy.stats import spearmanr
+
+    if len(set(x)) < 2 or len(set(y)) < 2:
+        return float("nan")
 
     return float(spearmanr(x, y).statistic)
 
@@ -235,7 +239,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--fqe-steps", type=int, default=2000, help="Adam steps of each FQE fit")
     parser.add_argument("--overrides", nargs="*", default=[], help="recipe settings for every cell (a smoke test's)")
-    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study
+    from studies.docs_fragments import add_docs_dir_argument, docs_dir_from_args, publish_study, seeds_text
 
     add_docs_dir_argument(parser)
     args = parser.parse_args(argv)
@@ -260,8 +264,10 @@ def main(argv: list[str] | None = None) -> None:
     (args.out / "tables.md").write_text(text, encoding="utf-8")
     print(text)
     if args.mode == "report":  # the docs' tables come from the records of every cell, never from a partial run
-        seeds = "; ".join(f"{c} {sorted(r['seed'] for r in records if r['cell'] == c)}"
-                          for c in dict.fromkeys(r["cell"] for r in records))
+        by_seeds: dict[tuple, list[str]] = {}
+        for c in dict.fromkeys(r["cell"] for r in records):
+            by_seeds.setdefault(tuple(sorted(r["seed"] for r in records if r["cell"] == c)), []).append(c)
+        seeds = "; ".join(f"{seeds_text(s)}: {', '.join(cells)}" for s, cells in by_seeds.items())
         steps = sorted({r["fqe_steps"] for r in records})
         publish_study("offline_value_validation", args.out / "tables.md", docs_dir_from_args(args.docs_dir),
                       seeds=seeds, budget=f"each cell's recipe defaults; FQE {', '.join(map(str, steps))} Adam steps "

@@ -64,7 +64,7 @@ def test_the_command_values_every_checkpoint_of_a_tiny_run(tmp_path):
     assert "### Regret@1 of each selection criterion" in proc.stdout and "| lqr_exp1 |" in proc.stdout
     again = run_script(SCRIPT, "report", "--cells", "lqr_exp1", "--out", str(out), "--docs-dir", str(tmp_path / "docs"))
     fragment = (tmp_path / "docs" / "results" / "_generated" / "offline_value_validation.md").read_text()
-    assert again.returncode == 0 and "lqr_exp1 [0]" in fragment and "| lqr_exp1 |" in fragment
+    assert again.returncode == 0 and "Seeds: 1 (0): lqr_exp1." in fragment and "| lqr_exp1 |" in fragment
     again = run_script(SCRIPT, "run", "--cells", "lqr_exp1", "--seeds", "0", "--out", str(out), "--docs-dir", "none",
                        "--overrides", *TINY)
     assert again.returncode == 0 and "seed 0:" not in again.stdout  # a finished (cell, seed) is not run again
