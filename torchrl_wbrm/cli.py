@@ -136,7 +136,7 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None, claim: R
         results = trainer.run()
     except KeyboardInterrupt:  # before training started (data collection), or a second Ctrl-C
         if (run_dir / CHECKPOINT).is_file():
-            print(f"Interrupted; {run_dir / 'checkpoint.pt'} holds the last checkpoint. Resume with: "
+            print(f"Interrupted; {run_dir / CHECKPOINT} holds the last checkpoint. Resume with: "
                   f"{stops.resume_command(run_dir, command)}", file=sys.stderr)
         else:
             print(f"Interrupted before the first checkpoint; no checkpoint was written to {run_dir}.", file=sys.stderr)
@@ -202,7 +202,7 @@ def _run_seeds(prepared, cfg: DictConfig, run_dir: Path, command: str, claim: Ru
         results = run_seeds(prepared, run_dir, resume=bool(cfg.resume))
     except RunInterrupted as err:  # a seed trained one at a time stopped at a step, after a checkpoint
         print(f"{err.signal_name} received: seed {err.run_dir.name.removeprefix('seed')} stopped in stage "
-              f"{err.stage!r} at step {err.step}, checkpoint written to {err.run_dir / 'checkpoint.pt'}. {resume}",
+              f"{err.stage!r} at step {err.step}, checkpoint written to {err.run_dir / CHECKPOINT}. {resume}",
               file=sys.stderr)
         sys.exit(err.exit_code)
     except KeyboardInterrupt:

@@ -475,7 +475,7 @@ class DensityRatioFitter:
                 if callback is not None:
                     callback(step, record)
                 if not math.isfinite(result[HELD_OUT_LOSS]):
-                    raise FloatingPointError(f"The held-out density-ratio loss is {result['held_out_loss']} at "
+                    raise FloatingPointError(f"The held-out density-ratio loss is {result[HELD_OUT_LOSS]} at "
                                              f"step {step}; lower the learning rate or clip the gradients.")
                 if result["stop"]:
                     stopped = True
