@@ -70,12 +70,9 @@ def compose(overrides: list[str]):
         return hydra_compose("wbrm_offline", overrides=[*overrides, "threads=1", "logger=none", "plots=false"])
 
 
-def _value(trainer, steps: int, seed: int) -> dict:
-    from torchrl_wbrm.training.offline_value import offline_value_figures
-
-    with torch.random.fork_rng():
-        figures, _ = offline_value_figures(trainer.actor, trainer.q_train_data, trainer.task.return_quantity(),
-                                           weights=trainer.q_train_weights, steps=steps, seed=seed)
+def _value(trainer, steps: int) -> dict:
+    """The trainer's own offline value of its current actor (:meth:`WBRMTrainer.offline_value`, forked RNG)."""
+    figures, _ = trainer.offline_value(steps)
     return {k: figures[k] for k in ("offline_value", "offline_value_weighted") if k in figures}
 
 
@@ -97,19 +94,19 @@ def run_one(cell: str, seed: int, *, data_path: Path | None, out: Path, fqe_step
     for step in range(every, steps, every):
         trainer.run(until=step)
         record = [r for r in trainer.history if r["stage"] == "q" and r["step"] == step][-1]
-        rows.append({"step": step, **{k: record[k] for k in _KEPT if k in record}, **_value(trainer, fqe_steps, seed)})
+        rows.append({"step": step, **{k: record[k] for k in _KEPT if k in record}, **_value(trainer, fqe_steps)})
     trainer.run()
     final = [r for r in trainer.history if r["stage"] == "q"][-1]
     delivered = final.get("selected_step", steps)
     last = {"step": steps}
     if delivered == steps:
         last.update({k: final[k] for k in _KEPT if k in final})
-        last.update(_value(trainer, fqe_steps, seed))
+        last.update(_value(trainer, fqe_steps))
     else:  # the delivered parameters are an earlier evaluation's: value the last step's as trained
         last.update({k: v for k, v in [r for r in trainer.history if r["stage"] == "q_last"][-1].items() if k in _KEPT})
         delivered_state = trainer.q_loss.state_dict()
         trainer.q_loss.load_state_dict(read_checkpoint(run_dir / "checkpoint.pt")["q_last"])
-        last.update(_value(trainer, fqe_steps, seed))
+        last.update(_value(trainer, fqe_steps))
         trainer.q_loss.load_state_dict(delivered_state)
     rows.append(last)
     trainer.release()
