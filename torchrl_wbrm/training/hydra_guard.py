@@ -103,8 +103,12 @@ class RunDirGuard(Callback):
                 run_dir = unique_dir(run_dir)
                 claim = claim_run_dir(run_dir)
             else:
-                created = not run_dir.exists()
-                run_dir.mkdir(parents=True, exist_ok=True)
+                run_dir.parent.mkdir(parents=True, exist_ok=True)
+                try:  # created by this run's own mkdir, not judged by an earlier look: a run started beside it may
+                    run_dir.mkdir()  # have made and claimed it in between, and its directory is never removed here
+                    created = True
+                except FileExistsError:
+                    created = False
                 try:
                     claim, _ = check_run_request(cfg, run_dir, resume=False, task=task)
                 except BaseException:
