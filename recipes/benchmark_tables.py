@@ -57,6 +57,13 @@ FEW_DEMONSTRATION_METHODS = {
 FEW_LABELS = ("task", "cell", "method")
 
 
+def _share(value: str) -> str:
+    """``--expert-shares``: ``medium`` or a percentage written with two digits (``05``)."""
+    if value == "medium" or (len(value) == 2 and value.isdigit() and value != "00"):
+        return value
+    raise argparse.ArgumentTypeError(f"{value!r}: a percentage with two digits (01 to 99) or 'medium'")
+
+
 def dataset_overrides(data_path: Path, expert: str, behaviour: str) -> list[str]:
     """The dataset keys of a run on benchmark datasets: ``env=minari``, where the datasets are, and the ids of S^e's and
     D's datasets."""
@@ -100,6 +107,7 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
     ``base_eval_every``); the cell label is ``se<n>_expert<pp>`` (``se<n>_medium``), with ``_x<budget>`` beyond the
     default budget."""
     from torchrl_wbrm.data.benchmark import few_demonstration_ids
+    from torchrl_wbrm.data.locomotion import LOCOMOTION_DATASETS, locomotion_ids
 
     unknown = [m for m in methods if m not in FEW_DEMONSTRATION_METHODS]
     if unknown:
@@ -110,11 +118,17 @@ def few_demonstration_cells(tasks: list[str], expert_episodes: list[int], shares
                          "(each step is the expert's with probability ½).")
     cells = []
     for task in tasks:
-        ids = few_demonstration_ids(task, namespace)
+        locomotion = task in LOCOMOTION_DATASETS  # D = random-expert<pp>-v0 (a share of the transitions)
+        ids = (locomotion_ids(task, namespace, [int(s) for s in shares if s != "medium"]) if locomotion
+               else few_demonstration_ids(task, namespace))
         for n in expert_episodes:
             for share in shares:
                 label = "medium" if share == "medium" else f"expert{share}"  # the cell's label
-                behaviour = ids["medium"] if share == "medium" else ids[f"behaviour_expert{share}"]
+                name = f"{'random' if locomotion else 'behaviour'}_expert{int(share):02d}" if share != "medium" else ""
+                if share != "medium" and name not in ids:
+                    raise ValueError(f"--expert-shares {share}: task {task!r} has no "
+                                     f"{name.replace('_', '-')}-v0 set (the small tasks have 05, 10 and 20).")
+                behaviour = ids["medium"] if share == "medium" else ids[name]
                 data = [*dataset_overrides(data_path, ids["expert_pool"], behaviour),
                         f"env.minari.expert_episodes={n}", "logger=none"]
                 for budget in budgets:
@@ -241,8 +255,9 @@ def main(argv=None) -> None:
                         help="the few-demonstration table: S^e a few episodes of the expert pool, D a behaviour set "
                              "with a share of expert episodes, every method of FEW_DEMONSTRATION_METHODS")
     parser.add_argument("--expert-episodes", nargs="+", type=int, default=[3], help="S^e's episodes (few-demos)")
-    parser.add_argument("--expert-shares", nargs="+", default=["10"], choices=["05", "10", "20", "medium"],
-                        help="the expert share of D in percent, behaviour-expert<pp>-v0, or medium: medium-v0 "
+    parser.add_argument("--expert-shares", nargs="+", default=["10"], type=_share,
+                        help="the expert share of D in percent (two digits), behaviour-expert<pp>-v0 (the small "
+                             "tasks: 05, 10, 20) or random-expert<pp>-v0 (locomotion), or medium: medium-v0 "
                              "(few-demonstrations)")
     parser.add_argument("--methods", nargs="+", default=list(FEW_DEMONSTRATION_METHODS),
                         help="the few-demonstration table's rows")

@@ -359,3 +359,22 @@ def test_few_demonstration_cells_at_other_budgets():
     assert "env.minari.behaviour=benchmark/pendulum/medium-v0" in medium[0]["overrides"]
     with pytest.raises(ValueError, match="medium-v0 has no expert episodes"):
         module.few_demonstration_cells(["pendulum"], [3], ["medium"], ["bc_oracle"], Path("/data"), "benchmark")
+
+
+def test_few_demonstration_cells_of_a_locomotion_task():
+    """A locomotion task's D is its ``random-expert<pp>-v0`` set (any two-digit share); a small task's share it does
+    not have is refused naming the set."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cells = module.few_demonstration_cells(["hopper"], [1, 5], ["05", "01"], ["wbrm"], Path("/data"), "benchmark")
+    assert [c["cell"] for c in cells] == ["se1_expert05", "se1_expert01", "se5_expert05", "se5_expert01"]
+    assert "env.minari.behaviour=benchmark/hopper/random-expert05-v0" in cells[0]["overrides"]
+    assert "env.minari.expert=benchmark/hopper/expert-pool-v0" in cells[0]["overrides"]
+    assert "env.minari.expert_episodes=5" in cells[2]["overrides"]
+    with pytest.raises(ValueError, match="no behaviour-expert01-v0 set"):
+        module.few_demonstration_cells(["pendulum"], [3], ["01"], ["wbrm"], Path("/data"), "benchmark")
