@@ -240,11 +240,15 @@ def benchmark_report(out: Path) -> str:
 
 def main(argv=None) -> None:
     from torchrl_wbrm.data.benchmark import BENCHMARK_TASKS, NAMESPACE
+    from torchrl_wbrm.data.locomotion import LOCOMOTION_DATASETS
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data-path", default="datasets/benchmark", help="the benchmark's Minari data path")
     parser.add_argument("--namespace", default=NAMESPACE)
-    parser.add_argument("--tasks", nargs="+", default=list(BENCHMARK_TASKS), choices=list(BENCHMARK_TASKS))
+    parser.add_argument("--tasks", nargs="+", default=list(BENCHMARK_TASKS),
+                        choices=[*BENCHMARK_TASKS, *LOCOMOTION_DATASETS],
+                        help="the locomotion tasks (datasets made by python -m torchrl_wbrm.data.benchmark --tasks "
+                             "...) with --few-demonstrations only")
     parser.add_argument("--algos", nargs="+", default=["wbrm"])
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--budgets", nargs="+", type=int, default=[1], help="multiples of the default q.steps")
@@ -321,7 +325,8 @@ def main(argv=None) -> None:
     budget = (base if few else ", ".join(f"×{b}" for b in args.budgets) + " " + base) + (
         f"; every run with `{' '.join(args.overrides)}`" if args.overrides else "")
     figure = few_demonstrations_plot(out) if few else None
-    publish_study("few_demonstrations" if few else "benchmark", out / "tables.md",
+    locomotion = few and all(t in LOCOMOTION_DATASETS for t in args.tasks)  # the locomotion page's table
+    publish_study("locomotion" if locomotion else "few_demonstrations" if few else "benchmark", out / "tables.md",
                   docs_dir_from_args(args.docs_dir, args.quick), figures=[figure],
                   seeds={r["seed"] for r in load_results(out) if "seed" in r},
                   argv=None if argv is None else [sys.argv[0], *argv],
