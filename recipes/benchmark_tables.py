@@ -168,10 +168,13 @@ def few_demonstrations_report(out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def few_demonstrations_plot(out: Path) -> Path | None:
-    """``few_demonstrations.png``: per task and expert share of ``D`` (a panel each), the normalised score against
-    ``S^e``'s number of episodes, one line per method (mean and 95% Student-t interval over the seeds), at the default
-    budget; dotted: the expert (100) and random actions (0). ``None`` (nothing drawn) when no cell has runs."""
+def few_demonstrations_plot(out: Path, against: str = "episodes") -> Path | None:
+    """The normalised score of each method (a line each: mean and 95% Student-t interval over the seeds) at the
+    default budget; dotted: the expert (100) and random actions (0). ``None`` (nothing drawn) when no cell has runs.
+
+    ``against="episodes"``: ``few_demonstrations.png``, a panel per task and expert share of ``D``, against
+    ``S^e``'s number of episodes. ``against="share"``: ``expert_share.png``, a panel per task and ``S^e`` size,
+    against the expert's share of ``D`` in percent (the ``medium-v0`` cells left out)."""
     import re
 
     import matplotlib.pyplot as plt
@@ -180,36 +183,45 @@ def few_demonstrations_plot(out: Path) -> Path | None:
     from torchrl_wbrm.training.plots import save_figure
     from torchrl_wbrm.training.reporting import load_results, split_by_status
 
+    if against not in ("episodes", "share"):
+        raise ValueError(f"against={against!r}: 'episodes' or 'share'.")
     records, _ = split_by_status(load_results(out))
     scores: dict[tuple, dict[str, dict[int, list[float]]]] = {}
     for rec in records:
         study = rec.get("study", {})
-        match = re.fullmatch(r"se(\d+)_(expert\d+|medium)", str(study.get("cell", "")))  # default budget only
+        match = re.fullmatch(r"se(\d+)_(expert(\d+)|medium)", str(study.get("cell", "")))  # default budget only
         score = rec.get("final", {}).get("normalised_score")
-        if match and isinstance(score, (int, float)):
-            panel = scores.setdefault((study["task"], match.group(2)), {})
-            panel.setdefault(study["method"], {}).setdefault(int(match.group(1)), []).append(score)
+        if not match or not isinstance(score, (int, float)) or (against == "share" and not match.group(3)):
+            continue
+        episodes, share = int(match.group(1)), match.group(2)
+        panel, x = ((share, episodes) if against == "episodes" else (episodes, int(match.group(3))))
+        methods = scores.setdefault((study["task"], panel), {})
+        methods.setdefault(study["method"], {}).setdefault(x, []).append(score)
     if not scores:
         return None
     order = list(FEW_DEMONSTRATION_METHODS)
     fig, axes = plt.subplots(1, len(scores), figsize=(5.2 * len(scores), 3.8), squeeze=False)
-    for ax, ((task, share), methods) in zip(axes[0], sorted(scores.items())):
+    for ax, ((task, panel), methods) in zip(axes[0], sorted(scores.items(), key=lambda kv: str(kv[0]))):
         for method in sorted(methods, key=lambda m: order.index(m) if m in order else len(order)):
-            sizes = sorted(methods[method])
-            cis = [mean_ci(methods[method][n]) for n in sizes]
-            ax.errorbar(sizes, [c.mean for c in cis], yerr=[c.half_width for c in cis], marker="o", capsize=3,
-                        label=f"{method} ({'/'.join(str(len(methods[method][n])) for n in sizes)} seeds)")
+            xs = sorted(methods[method])
+            cis = [mean_ci(methods[method][x]) for x in xs]
+            ax.errorbar(xs, [c.mean for c in cis], yerr=[c.half_width for c in cis], marker="o", capsize=3,
+                        label=f"{method} ({'/'.join(str(len(methods[method][x])) for x in xs)} seeds)")
         for level in (0.0, 100.0):
             ax.axhline(level, color="k", ls=":", lw=0.8)
         ax.set_xscale("log")
-        ax.set_xticks(sorted({n for m in methods.values() for n in m}))
-        ax.set_xticklabels([str(n) for n in ax.get_xticks()])
-        ax.set_xlabel("S^e: expert episodes")
+        ax.set_xticks(sorted({x for m in methods.values() for x in m}))
+        ax.set_xticklabels([str(x) for x in ax.get_xticks()])
         ax.set_ylabel("normalised score (0 random, 100 expert)")
-        ax.set_title(f"{task}, D " + ("medium-v0" if share == "medium" else f"{int(share[6:])}% expert episodes"),
-                     fontsize=10)
+        if against == "episodes":
+            ax.set_xlabel("S^e: expert episodes")
+            ax.set_title(f"{task}, D " + ("medium-v0" if panel == "medium" else f"{int(panel[6:])}% expert"),
+                         fontsize=10)
+        else:
+            ax.set_xlabel("the expert's share of D (%)")
+            ax.set_title(f"{task}, S^e of {panel} expert episodes", fontsize=10)
         ax.legend(fontsize=7)
-    return save_figure(fig, out / "few_demonstrations.png")
+    return save_figure(fig, out / ("few_demonstrations.png" if against == "episodes" else "expert_share.png"))
 
 
 def benchmark_report(out: Path) -> str:
@@ -324,10 +336,11 @@ def main(argv=None) -> None:
             else "the task's default `q.steps`")
     budget = (base if few else ", ".join(f"×{b}" for b in args.budgets) + " " + base) + (
         f"; every run with `{' '.join(args.overrides)}`" if args.overrides else "")
-    figure = few_demonstrations_plot(out) if few else None
     locomotion = few and all(t in LOCOMOTION_DATASETS for t in args.tasks)  # the locomotion page's table
+    figures = [few_demonstrations_plot(out), few_demonstrations_plot(out, "share") if locomotion else None] if few \
+        else []
     publish_study("locomotion" if locomotion else "few_demonstrations" if few else "benchmark", out / "tables.md",
-                  docs_dir_from_args(args.docs_dir, args.quick), figures=[figure],
+                  docs_dir_from_args(args.docs_dir, args.quick), figures=figures,
                   seeds={r["seed"] for r in load_results(out) if "seed" in r},
                   argv=None if argv is None else [sys.argv[0], *argv],
                   budget=budget

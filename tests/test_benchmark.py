@@ -378,3 +378,46 @@ def test_few_demonstration_cells_of_a_locomotion_task():
     assert "env.minari.expert_episodes=5" in cells[2]["overrides"]
     with pytest.raises(ValueError, match="no behaviour-expert01-v0 set"):
         module.few_demonstration_cells(["pendulum"], [3], ["01"], ["wbrm"], Path("/data"), "benchmark")
+
+
+def test_the_share_plot_draws_a_line_per_method_against_the_expert_share(tmp_path):
+    """``expert_share.png``: a panel per (task, S^e size), the expert's share of D on x, a line per method; the
+    medium cells are left out of it, and each line holds the seeds' mean."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    scores = {("se5_expert01", "wbrm"): [10.0, 20.0], ("se5_expert05", "wbrm"): [50.0, 70.0],
+              ("se5_expert05", "bc"): [30.0, 30.0], ("se5_medium", "bc"): [5.0, 5.0]}
+    for (cell, method), values in scores.items():
+        for seed, score in enumerate(values):
+            run = tmp_path / cell / method / f"seed{seed}"
+            run.mkdir(parents=True)
+            (run / "results.json").write_text(json.dumps({
+                "status": "finished", "seed": seed, "final": {"normalised_score": score},
+                "study": {"task": "hopper", "cell": cell, "method": method}}))
+    drawn = {}
+    import matplotlib.axes
+
+    original = matplotlib.axes.Axes.errorbar
+
+    def spy(self, x, y, *args, **kwargs):
+        drawn[kwargs["label"].split()[0]] = (list(x), list(y))
+        return original(self, x, y, *args, **kwargs)
+
+    matplotlib.axes.Axes.errorbar = spy
+    try:
+        figure = module.few_demonstrations_plot(tmp_path, "share")
+    finally:
+        matplotlib.axes.Axes.errorbar = original
+    assert figure is not None and Path(figure).name == "expert_share.png" and Path(figure).is_file()
+    assert drawn == {"wbrm": ([1, 5], [15.0, 60.0]), "bc": ([5], [30.0])}
+    with pytest.raises(ValueError, match="against="):
+        module.few_demonstrations_plot(tmp_path, "size")
