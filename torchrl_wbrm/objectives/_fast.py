@@ -6,8 +6,8 @@ and the ``TensorDictModule`` output path (in tensordict 0.14 ``TensorDict.from_a
 ``importlib.util.find_spec("pandas")`` on every output), a large share of a step on small networks
 (:doc:`/performance`). :class:`NetworkCall` is the one way the losses call a network: for a plain
 :class:`~tensordict.nn.TensorDictModule` (``ValueOperator``, a non-``safe`` ``Actor``, ``DensityRatioNetwork``: one
-output key, no ``method``, no keyword inputs, no hooks on the wrapper) it puts the same parameter tensors in the same
-module slots with plain dictionary assignments and calls ``net.module`` on the input tensors, so the result, its
+output key, no ``method``, no keyword inputs, no hooks on the wrapper) it calls ``net.module`` on the input tensors
+with the same parameter tensors through :func:`torch.func.functional_call`, so the result, its
 gradient and the random draws are those of the TensorDict call (tested); for any other module (a
 ``TensorDictSequential``, a probabilistic or safe actor) it makes that TensorDict call.
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictParams
-from torch import nn
+from torch.func import functional_call
 from torchrl.objectives import SoftUpdate
 
 from torchrl_wbrm.objectives._utils import get_entry
@@ -43,7 +43,7 @@ class NetworkCall:
     parameters in (no gradient reaches them; it still reaches the inputs), as ``params.detach().to_module(...)``.
     """
 
-    __slots__ = ("network", "module", "slots", "out_key", "in_keys", "direct", "why")
+    __slots__ = ("network", "module", "names", "out_key", "in_keys", "direct", "why")
 
     def __init__(self, network, params, out_key, *, why: str = "the network's output", direct: bool = True):
         self.network = network
@@ -51,8 +51,8 @@ class NetworkCall:
         self.module = getattr(network, "module", None)
         self.out_key = out_key
         self.in_keys = list(network.in_keys)
-        self.slots = self._slots(network, params, out_key) if direct else None
-        self.direct = self.slots is not None
+        self.names = self._names(network, params, out_key) if direct else None
+        self.direct = self.names is not None
 
     @staticmethod
     def is_plain(network) -> bool:
@@ -75,62 +75,33 @@ class NetworkCall:
         )
 
     @classmethod
-    def _slots(cls, network, params, out_key) -> dict[str, tuple[dict, str]] | None:
-        """The module slot of each entry of ``params``, or ``None`` where the TensorDict call is needed: a network
-        that is not plain, another output key, or an entry of ``params`` that names no slot (or a slot no entry
-        covers)."""
+    def _names(cls, network, params, out_key) -> dict[str, str] | None:
+        """Each entry of ``params`` -> its name inside ``network.module``, or ``None`` where the TensorDict call is
+        needed: a network that is not plain, another output key, or entries of ``params`` other than the network's
+        parameters and buffers."""
         if not cls.is_plain(network) or list(network.out_keys) != [out_key]:
             return None
         if not isinstance(params, TensorDictParams):
             return None
-        stores = (params._parameters, params._buffers)
         wanted = {name for name, _ in network.named_parameters(remove_duplicate=False)}
         wanted |= {name for name, _ in network.named_buffers(remove_duplicate=False)}
-        slots: dict[str, tuple[dict, str]] = {}
-        for store in stores:
-            for name in store:
-                *path, attr = name.split(".")
-                module: nn.Module = network
-                try:
-                    for part in path:
-                        module = module._modules[part]
-                except KeyError:
-                    return None
-                if attr in module._parameters:
-                    slots[name] = (module._parameters, attr)
-                elif attr in module._buffers:
-                    slots[name] = (module._buffers, attr)
-                else:
-                    return None
-        if set(slots) != wanted:
+        given = [name for name, _ in _entries(params)]
+        if set(given) != wanted or len(given) != len(wanted) or not all(n.startswith("module.") for n in given):
             return None
-        return slots
+        return {name: name[len("module."):] for name in given}
 
     def __call__(self, params, inputs, batch_size, *, detach: bool = False) -> torch.Tensor:
-        if self.slots is None:
+        if self.names is None:
             if isinstance(params, dict):  # dotted names -> tensors (named_tensors), e.g. one critic inside a vmap
                 params = TensorDict(params, batch_size=[]).unflatten_keys(".")
             td = TensorDict({key: inputs[key] for key in self.in_keys}, batch_size=batch_size)
             with (params.detach() if detach else params).to_module(self.network, preserve_module_state=False):
                 out = self.network(td)
             return get_entry(out, self.out_key, self.why)
-        saved = []
-        slots = self.slots
-        # a TensorDictParams' own two dicts walked in place (no generator per entry), any other TensorDict by _entries
-        if isinstance(params, TensorDictParams):
-            stores = (params._parameters, params._buffers)
-        else:
-            stores = (params if isinstance(params, dict) else dict(_entries(params)),)
-        try:
-            for store in stores:
-                for name, value in store.items():
-                    container, attr = slots[name]
-                    saved.append((container, attr, container[attr]))
-                    container[attr] = value.detach() if detach and value is not None else value
-            return self.module(*[inputs[key] for key in self.in_keys])
-        finally:
-            for container, attr, old in saved:
-                container[attr] = old
+        names = self.names
+        entries = params.items() if isinstance(params, dict) else _entries(params)
+        tensors = {names[name]: value.detach() if detach and value is not None else value for name, value in entries}
+        return functional_call(self.module, tensors, tuple(inputs[key] for key in self.in_keys), tie_weights=False)
 
 
 def named_tensors(params) -> dict:
@@ -144,8 +115,8 @@ def _entries(params):
     of any other TensorDict (e.g. the detached online parameters TorchRL hands out for a target that does not
     exist)."""
     if isinstance(params, TensorDictParams):
-        yield from params._parameters.items()
-        yield from params._buffers.items()
+        yield from params.named_parameters(remove_duplicate=False)
+        yield from params.named_buffers(remove_duplicate=False)
     else:
         for key, value in params.items(True, True):
             yield (".".join(key) if isinstance(key, tuple) else key), value
@@ -157,22 +128,20 @@ class ForeachSoftUpdate(SoftUpdate):
     over flat lists of the target and source tensors instead of a TensorDict walk per network.
 
     The pairs are torchrl's own (``init_`` keeps only the targets distinct from their sources); the tensors are read
-    from the loss's ``TensorDictParams`` at every step (dictionary lookups), so a replaced parameter (``.to(device)``)
-    is picked up. Bitwise the same update as ``SoftUpdate`` (tested).
+    from the loss's ``TensorDictParams`` at every step (``named_parameters``), so a replaced parameter
+    (``.to(device)``) is picked up. Bitwise the same update as ``SoftUpdate`` (tested).
     """
 
-    def _slots(self) -> list[tuple[dict, dict, str]]:
+    def _slots(self) -> list[tuple[TensorDictParams, TensorDictParams, list[str]]]:
+        """``(source params, target params, the dotted names of torchrl's pairs)`` per network."""
         slots = self.__dict__.get("_foreach_slots")
         if slots is None:
-            slots = []
+            names: dict[str, list[str]] = {}
             for key in self._sources.keys(True, True):
                 key = key if isinstance(key, tuple) else (key,)
-                source = getattr(self.loss_module, key[0])
-                target = getattr(self.loss_module, "target_" + key[0])
-                name = ".".join(key[1:])
-                src_store = source._parameters if name in source._parameters else source._buffers
-                dst_store = target._buffers if name in target._buffers else target._parameters
-                slots.append((src_store, dst_store, name))
+                names.setdefault(key[0], []).append(".".join(key[1:]))
+            slots = [(getattr(self.loss_module, network), getattr(self.loss_module, "target_" + network), pairs)
+                     for network, pairs in names.items()]
             self.__dict__["_foreach_slots"] = slots
         return slots
 
@@ -183,11 +152,12 @@ class ForeachSoftUpdate(SoftUpdate):
                 "calling step()"
             )
         sources, targets = [], []
-        for src_store, dst_store, name in self._slots():
-            target = dst_store[name]
-            if target.requires_grad:
-                raise RuntimeError("the target parameter is part of a graph.")
-            sources.append(src_store[name])
-            targets.append(target)
+        for source_params, target_params, names in self._slots():
+            source, target = dict(_entries(source_params)), dict(_entries(target_params))
+            for name in names:
+                if target[name].requires_grad:
+                    raise RuntimeError("the target parameter is part of a graph.")
+                sources.append(source[name])
+                targets.append(target[name])
         with torch.no_grad():  # (the tensors themselves rather than 24 ``.data`` views: the same kernel on the same memory)
             torch._foreach_lerp_(targets, sources, 1 - self.eps)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 _REDUCTIONS = ("mean", "sum", "none")
@@ -38,29 +38,9 @@ def check_reduction(reduction: str | None) -> str:
     return reduction
 
 
-def fast_get(tensordict: TensorDictBase, key: NestedKey, default=None):
-    """``tensordict.get(key, default)``; for a plain ``TensorDict`` and a string key or a flat tuple of strings, read
-    straight from the (nested) dictionaries, which is what ``TensorDict.get`` does after unravelling the key."""
-    if type(tensordict) is TensorDict:
-        try:
-            if type(key) is str:
-                return tensordict._tensordict[key]
-            if type(key) is tuple and key and all(type(k) is str for k in key):
-                node = tensordict
-                for part in key[:-1]:
-                    node = node._tensordict[part]
-                    if type(node) is not TensorDict:
-                        break
-                else:
-                    return node._tensordict[key[-1]]
-        except KeyError:
-            pass
-    return tensordict.get(key, default)
-
-
 def get_entry(tensordict: TensorDictBase, key: NestedKey, why: str) -> torch.Tensor:
     """``tensordict.get(key)``, or a KeyError that names the key, says why it is needed, and lists what is there."""
-    value = fast_get(tensordict, key)
+    value = tensordict.get(key, None)
     if value is None:
         present = sorted(str(k) for k in tensordict.keys(True, True))
         raise KeyError(f"Missing key {key!r} ({why}). The input holds: {present}.")

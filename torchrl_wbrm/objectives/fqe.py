@@ -15,7 +15,7 @@ from torchrl.objectives.value import TD0Estimator
 
 from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT, WEIGHT_ESS
 from torchrl_wbrm.objectives._fast import NetworkCall
-from torchrl_wbrm.objectives._utils import check_not_empty, check_reduction, fast_get, get_entry, per_sample
+from torchrl_wbrm.objectives._utils import check_not_empty, check_reduction, get_entry, per_sample
 from torchrl_wbrm.objectives.functional import (
     bellman_residual,
     bellman_target,
@@ -297,7 +297,7 @@ class FQELoss(LossModule):
         reward_key = _next(self.tensor_keys.reward)
         reward = per_sample(get_entry(tensordict, reward_key, "the reward"), batch, reward_key)
         done_key, terminated_key = _next(self.tensor_keys.done), _next(self.tensor_keys.terminated)
-        terminated = fast_get(tensordict, terminated_key)
+        terminated = tensordict.get(terminated_key, None)
         if terminated is None:
             terminated = get_entry(tensordict, done_key, "the episode-end flag (no terminated entry either)")
         terminated = per_sample(terminated, batch, terminated_key).bool()

@@ -25,7 +25,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.utils import _reduce
 
-from torchrl_wbrm.objectives._utils import check_sign, fast_get, get_entry, per_sample
+from torchrl_wbrm.objectives._utils import check_sign, get_entry, per_sample
 
 __all__ = [
     "RESIDUALS",
@@ -184,7 +184,7 @@ def per_sample_weight(
     if weight_key is not None:
         weight = _read_weight(tensordict, weight_key, get_entry(tensordict, weight_key, why), dtype, check_weight)
     if priority_key is not None and priority_key != weight_key:
-        priority = fast_get(tensordict, priority_key)
+        priority = tensordict.get(priority_key, None)
         if priority is not None:
             priority = _read_weight(tensordict, priority_key, priority, dtype, check_priority)
             weight = priority if weight is None else weight * priority.to(weight.dtype)

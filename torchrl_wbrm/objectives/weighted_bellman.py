@@ -42,7 +42,6 @@ from torchrl_wbrm.objectives._utils import (
     check_same_features,
     check_sign,
     checks_run,
-    fast_get,
     get_entry,
     input_width,
     per_sample,
@@ -576,15 +575,15 @@ class WeightedBellmanLoss(LossModule):
         with the value estimator's keys and γ (``γ^k`` where the batch holds ``steps_to_next_obs`` ``k``)."""
         estimator = self.value_estimator
         keys = estimator.tensor_keys
-        reward = fast_get(tensordict, _next(keys.reward))
+        reward = tensordict.get(_next(keys.reward), None)
         if estimator.gamma.device != reward.device:
             estimator.gamma = estimator.gamma.to(reward.device)
         gamma = estimator.gamma
-        steps = fast_get(tensordict, keys.steps_to_next_obs)
+        steps = tensordict.get(keys.steps_to_next_obs, None)
         if steps is not None:
             gamma = gamma ** steps.view_as(reward)
-        done = fast_get(tensordict, _next(keys.done))
-        terminated = fast_get(tensordict, _next(keys.terminated), done)
+        done = tensordict.get(_next(keys.done), None)
+        terminated = tensordict.get(_next(keys.terminated), done)
         return bellman_target(reward, next_value.reshape(reward.shape), terminated, gamma)
 
     def _weight(self, tensordict: TensorDictBase, check: bool = True) -> torch.Tensor:
@@ -625,7 +624,7 @@ class WeightedBellmanLoss(LossModule):
         ``None`` where the batch holds none."""
         mask = None
         for key in self._loss_mask_keys():
-            value = fast_get(tensordict, key)
+            value = tensordict.get(key, None)
             if value is not None:
                 value = self._expand_loss_mask(value, like)
                 mask = value if mask is None else mask & value
@@ -725,9 +724,9 @@ class WeightedBellmanLoss(LossModule):
             value = per_sample(get_entry(tensordict, _next(key), why), batch, _next(key))
             if key == self.tensor_keys.reward:
                 checks.append((value, _next(key)))
-                reward_shape = fast_get(tensordict, _next(key)).shape
+                reward_shape = tensordict.get(_next(key), None).shape
             else:
-                raw = fast_get(tensordict, _next(key))
+                raw = tensordict.get(_next(key), None)
                 flag = as_bool_flag(raw, _next(key), check=run)
                 if flag.shape != reward_shape:  # [B] and [B, 1] mixed: one value per sample either way
                     flag = flag.reshape(reward_shape)
@@ -839,7 +838,7 @@ class WeightedBellmanLoss(LossModule):
         if key is None:
             return False
         return (self.use_prioritized_weights in (True, "auto") and not (self.use_weights and key == self.tensor_keys.weight)
-                and fast_get(tensordict, key) is not None)
+                and tensordict.get(key, None) is not None)
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``−mean_i Q(x_i, μ(x_i))`` (Q frozen), optionally ŵ-weighted and with TD3+BC's cloning term.
