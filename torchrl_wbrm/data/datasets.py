@@ -29,6 +29,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_wbrm._files import atomic_write
 from torchrl_wbrm.keys import EPISODE, METADATA
 from torchrl_wbrm.data.sampling import STATE_ACTION_KEYS, PairedSampler
 
@@ -393,12 +394,8 @@ class OfflineDatasets:
                 }
             files[name] = entries
         meta = {"format_version": FORMAT_VERSION, "sizes": self.sizes(), "files": files, **self.metadata}
-        tmp = path / f"{METADATA}.tmp"
-        tmp.unlink(missing_ok=True)  # a stale temporary, or a link planted under its name, is removed, not followed
-        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644),
-                       "w") as f:
-            f.write(json.dumps(meta, indent=2, default=str))
-        os.replace(tmp, path / METADATA)
+        text = json.dumps(meta, indent=2, default=str)
+        atomic_write(path / METADATA, lambda f: f.write(text.encode()))
         return path
 
     @staticmethod

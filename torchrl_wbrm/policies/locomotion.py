@@ -26,8 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +33,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+
+from torchrl_wbrm._files import atomic_write
 
 __all__ = [
     "EXPERTS_DIR",
@@ -180,23 +180,6 @@ def _segment_seed(seed: int, segment: int) -> int:
     return int(np.random.SeedSequence([seed, segment]).generate_state(1)[0])
 
 
-def _write_atomic(path: Path, write) -> None:
-    """``write(file)`` into a fresh temporary file beside ``path``, fsync, then ``os.replace`` it onto ``path``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # the mode an ordinary open would give, not mkstemp's 0600
-        with os.fdopen(fd, "wb") as file:
-            write(file)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _settings(cfg: _TrainConfig) -> dict:
     return {key: getattr(cfg, key) for key in _RUN_SETTINGS}
 
@@ -334,8 +317,8 @@ def train_locomotion_expert(cfg: _TrainConfig, log=print) -> dict:
         entry = {"frames": frames, "return_mean": float(returns.mean()), "return_std": float(returns.std()),
                  "seconds": round(elapsed + time.time() - start, 1)}
         entries.append(entry)
-        _write_atomic(cfg.out / f"{cfg.task}-{frames:08d}.pt", lambda f: torch.save(deterministic.state_dict(), f))
-        _write_atomic(cfg.out / f"{cfg.task}-log.json", lambda f: f.write(json.dumps(entries, indent=1).encode()))
+        atomic_write(cfg.out / f"{cfg.task}-{frames:08d}.pt", lambda f: torch.save(deterministic.state_dict(), f))
+        atomic_write(cfg.out / f"{cfg.task}-log.json", lambda f: f.write(json.dumps(entries, indent=1).encode()))
         rows = buffer[: len(buffer)].flatten_keys(".")
         snapshot = {"format": _STATE_FORMAT, "settings": _settings(cfg), "frames": frames, "log": entries,
                     "elapsed": elapsed + time.time() - start, "loss": loss.state_dict(), "optim": optim.state_dict(),
@@ -343,7 +326,7 @@ def train_locomotion_expert(cfg: _TrainConfig, log=print) -> dict:
                     "buffer": {key: rows.get(key).clone() for key in rows.keys()}}  # not the unfilled rows
         log(json.dumps(entry))
         written = time.time()
-        _write_atomic(state_path, lambda f, snapshot=snapshot: torch.save(snapshot, f))
+        atomic_write(state_path, lambda f, snapshot=snapshot: torch.save(snapshot, f))
         log(json.dumps({"state": str(state_path), "frames": frames, "bytes": state_path.stat().st_size,
                         "write_seconds": round(time.time() - written, 2)}))
     return entries[-1]
