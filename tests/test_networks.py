@@ -195,6 +195,13 @@ def test_q_accuracy_study_quick(tmp_path):
     assert "### activation" in tables and "| lqr_exp1 | ReLU |" in tables and "SiLU (default)" in tables
     assert "### Selection (no ground truth)" in tables
     assert (out / "q_accuracy_study.png").stat().st_size > 0
+    # --report-only rebuilds both from the finished runs and trains nothing
+    runs = sorted(p.stat().st_mtime_ns for p in out.rglob("results.json"))
+    (out / "tables.md").unlink(), (out / "q_accuracy_study.png").unlink()
+    proc = run_script(ROOT / "recipes" / "q_accuracy_study.py", "--quick", "--report-only", "--out", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (out / "tables.md").read_text() == tables and (out / "q_accuracy_study.png").stat().st_size > 0
+    assert sorted(p.stat().st_mtime_ns for p in out.rglob("results.json")) == runs
 
 
 def _compose(*overrides):

@@ -411,7 +411,7 @@ def _q_records(levels):
 
 
 def test_q_accuracy_adopt_takes_one_level_and_breaks_ties_by_run_time():
-    import q_accuracy_study as q
+    from studies import q_accuracy_report as q
 
     # two candidates whose intervals overlap: the cheaper one, although its score is higher
     chosen = q.adopt(_q_records([("activation", "GELU", 0.985, 30.0), ("step budget", "6000", 0.984, 60.0)]))
