@@ -6,7 +6,7 @@
 
 The stage-2 comparisons run at each hidden width of ``--widths`` (Q and the actor both ``2 x width``; the twin at
 the same width), batch 256; the ratio step at the ratio network's default width. Each builds the project's update exactly as the trainer does (``build_algo`` on a default
-``WBRMConfig`` with the LQR task's defaults filled in, as the trainer fills them; the ratio loss and optimiser as ``WBRMTrainer._setup_ratio``) and a twin written with plain torch on
+``WBRMConfig`` with the LQR task's defaults filled in, as the trainer fills them; the ratio loss and optimiser as ``training.parts.make_ratio_fitter``) and a twin written with plain torch on
 deep copies of the *same* modules (the torchrl ``MLP``s, ``BoundedTanh``, ``BoundedRatio``) from the same initial
 weights, on the same batch:
 

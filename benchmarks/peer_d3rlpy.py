@@ -234,7 +234,7 @@ def score(trainer, policy_path: Path) -> dict:
     from tensordict.nn import TensorDictModule
 
     scripted = torch.jit.load(str(policy_path))
-    dim, action_dim = trainer.observation_dim, trainer.action_dim
+    dim, action_dim = (trainer.q_train_data[key].shape[-1] for key in ("observation", "action"))
 
     def act(x: torch.Tensor) -> torch.Tensor:  # one observation or a batch, as the evaluator steps its env
         return scripted(x.float().reshape(-1, dim)).reshape(*x.shape[:-1], action_dim)
@@ -242,7 +242,7 @@ def score(trainer, policy_path: Path) -> dict:
     policy = TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
     ec = trainer.cfg.eval
     with torch.no_grad():
-        return trainer.evaluator.evaluate(policy, episodes=ec.episodes, seed=ec.seed)
+        return trainer.evaluation.evaluator.evaluate(policy, episodes=ec.episodes, seed=ec.seed)
 
 
 def _mean_ci(values: list[float]) -> tuple[float, float]:

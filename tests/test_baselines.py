@@ -180,7 +180,7 @@ def _learned(algo: str) -> dict:
     env = lqr_env(trainer.task.lqr_config)
     _, K = env.riccati()
     data = trainer.cfg.env.lqr_data
-    samples = trainer.eval_samples["expert"]
+    samples = trainer.evaluation.eval_samples["expert"]
     q_star = env.optimal_q(samples["observation"].double(), samples["action"].double())
     q_behaviour = policy_q(env, data.behaviour_gain_scale * K, data.behaviour_noise_std)(samples["observation"],
                                                                                          samples["action"])

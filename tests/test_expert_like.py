@@ -145,15 +145,17 @@ def test_bc_clones_s_e_and_the_episodes_the_raw_ratio_selects(tmp_path, source):
 ])
 def test_a_setting_that_reads_ds_episodes_is_refused_before_stage_1_on_data_without_ids(tmp_path, monkeypatch, layer,
                                                                                        setting):
+    import torchrl_wbrm.training.trainer as trainer_module
     from torchrl_wbrm.training import WBRMTrainer
 
-    setup_data = WBRMTrainer._setup_data
+    load_run_data = trainer_module.load_run_data
 
-    def without_ids(self):
-        setup_data(self)
-        self.q_train_data = self.q_train_data.exclude("episode")
+    def without_ids(cfg, task):
+        data = load_run_data(cfg, task)
+        data.train = data.train.exclude("episode")
+        return data
 
-    monkeypatch.setattr(WBRMTrainer, "_setup_data", without_ids)
+    monkeypatch.setattr(trainer_module, "load_run_data", without_ids)
     WBRMTrainer(tiny_lqr_config(), tmp_path / "defaults", progress=False).release()  # ŵ per transition: no ids read
     with pytest.raises(ValueError, match=rf"^{setting} needs D's episode ids \(key 'episode'\), which these data do "
                                          r"not hold: .+\.$"):

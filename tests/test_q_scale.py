@@ -30,7 +30,7 @@ def test_every_q_algo_has_a_q_figure_on_minari_data(tmp_path, algo):
     d = trainer.q_train_data
     with torch.no_grad():
         q, _ = trainer.algo.q_value(d)
-    assert trainer._q_mean_over_d() == pytest.approx(q.double().mean().item(), rel=1e-6)
+    assert trainer.evaluation.q_mean_over_d() == pytest.approx(q.double().mean().item(), rel=1e-6)
     assert scale["max_abs_q_mean"] >= abs(q.double().mean().item()) * (1 - 1e-6)
 
 

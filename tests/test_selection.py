@@ -10,6 +10,7 @@ import pytest
 
 from tests.references import tiny_lqr_config
 from torchrl_wbrm.training import WBRMTrainer
+from torchrl_wbrm.training.evaluation import RunEvaluation
 from torchrl_wbrm.training.seeds import run_seeds
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # tests/conftest.py: one torch thread per test
@@ -25,10 +26,17 @@ def tiny(**overrides):
 
 @pytest.fixture
 def fake_residual(monkeypatch):
-    def fake(self):
-        return dict.fromkeys(("held_out_bellman_residual", "held_out_weighted_residual"), FAKE[self.state["step"]])
+    stage_two = RunEvaluation.stage_two
 
-    monkeypatch.setattr(WBRMTrainer, "_selection_figures", fake)
+    def at_step(self, step, *args, **kwargs):  # the step of the evaluation, for fake
+        self.fake_step = step
+        return stage_two(self, step, *args, **kwargs)
+
+    def fake(self, selection=None):
+        return dict.fromkeys(("held_out_bellman_residual", "held_out_weighted_residual"), FAKE[self.fake_step])
+
+    monkeypatch.setattr(RunEvaluation, "stage_two", at_step)
+    monkeypatch.setattr(RunEvaluation, "selection_figures", fake)
 
 
 FIGURES = ("regret", "return", "q_error_expert", "q_error_behaviour")

@@ -80,7 +80,7 @@ def test_interrupt_during_the_final_evaluation_stops_at_once_and_resumes_exactly
     reference = WBRMTrainer(cfg, tmp_path / "whole", progress=False).run()
 
     trainer = WBRMTrainer(cfg, tmp_path / "cut", progress=False)
-    evaluate = trainer.evaluator.evaluate
+    evaluate = trainer.evaluation.evaluator.evaluate
 
     def long_final_evaluation(policy, *, episodes, **kwargs):
         if episodes == 60:  # the final one: a signal arrives while it runs, which would take a minute
@@ -88,7 +88,7 @@ def test_interrupt_during_the_final_evaluation_stops_at_once_and_resumes_exactly
             time.sleep(60)
         return evaluate(policy, episodes=episodes, **kwargs)
 
-    trainer.evaluator.evaluate = long_final_evaluation
+    trainer.evaluation.evaluator.evaluate = long_final_evaluation
     start = time.perf_counter()
     with pytest.raises(RunInterrupted, match=r"SIGINT received: stopped during the evaluation in stage 'q' at step "
                                              r"40, checkpoint written to .*resume=") as err:

@@ -112,11 +112,11 @@ def test_evaluation_scores_known_policies_at_their_exact_figures(finished_run):
     env = trainer.task.lqr_env
     _, K = env.riccati()
     exact = reference_regrets(trainer.task.lqr_config)
-    actor, q_value, episodes = trainer.actor, trainer.algo.q_value, trainer.cfg.eval.episodes
+    actor, q_value, episodes = trainer.algo.policy, trainer.algo.q_value, trainer.cfg.eval.episodes
     try:
         trainer.cfg.eval.episodes = 1000
         for gain, name in ((torch.zeros_like(K), "zero_action"), (0.5 * K, "behaviour_mean")):
-            trainer.actor = TensorDictModule(_LinearPolicy(gain), in_keys=["observation"], out_keys=["action"])
+            trainer.algo.policy = TensorDictModule(_LinearPolicy(gain), in_keys=["observation"], out_keys=["action"])
             trainer.algo.q_value = lambda td: (env.optimal_q(td["observation"].double(), td["action"].double()).reshape(-1),
                                                td["action"])
             final = trainer.evaluate(final=True)
@@ -125,12 +125,12 @@ def test_evaluation_scores_known_policies_at_their_exact_figures(finished_run):
         q_b = policy_q(env, 0.5 * K, 0.5)
         trainer.algo.q_value = lambda td: (q_b(td["observation"], td["action"]).reshape(-1), td["action"])
         final = trainer.evaluate(final=True)
-        samples = trainer.eval_samples["expert"]
+        samples = trainer.evaluation.eval_samples["expert"]
         q_star = env.optimal_q(samples["observation"].double(), samples["action"].double())
         expected = relative_q_error(q_b(samples["observation"], samples["action"]), q_star)
         assert final["q_error_expert"] == pytest.approx(expected, rel=1e-6) and expected > 0.05
     finally:
-        trainer.actor, trainer.algo.q_value, trainer.cfg.eval.episodes = actor, q_value, episodes
+        trainer.algo.policy, trainer.algo.q_value, trainer.cfg.eval.episodes = actor, q_value, episodes
 
 
 def test_weights_are_computed_once_and_self_normalised(finished_run):
@@ -200,7 +200,7 @@ def test_exact_source_stores_the_true_ratio_expert_over_behaviour(tmp_path, temp
     # the trainer's exact ratio by value, in log space (finite whichever way round it is computed), on expert and
     # behaviour samples: log dP^e/dP^b, not its negative
     for samples in (trainer.datasets.expert_samples[:], trainer.q_train_data):
-        log_w = trainer.true_ratio.module.log_ratio(samples["observation"], samples["action"]).reshape(-1)
+        log_w = trainer.evaluation.true_ratio.module.log_ratio(samples["observation"], samples["action"]).reshape(-1)
         expected = _true_ratio_by_hand(trainer.task.lqr_env, samples["observation"], samples["action"], log=True, **policies)
         torch.testing.assert_close(log_w, expected, rtol=1e-6, atol=1e-6)
     trainer._build_q_buffer()

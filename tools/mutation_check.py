@@ -66,14 +66,14 @@ MUTATIONS = [
     ),
     Mutation(
         "flip_gamma", "the trainer discounts with −γ",
-        "torchrl_wbrm/training/trainer.py",
-        "self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = -self.task.gamma(self.cfg.q.gamma)",
+        "torchrl_wbrm/training/parts.py",
+        "gamma = task.gamma(cfg.q.gamma)", "gamma = -task.gamma(cfg.q.gamma)",
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(
         "gamma_half", "the trainer discounts with γ = 0.5 instead of the env's 0.9",
-        "torchrl_wbrm/training/trainer.py",
-        "self.gamma = self.task.gamma(self.cfg.q.gamma)", "self.gamma = 0.5",
+        "torchrl_wbrm/training/parts.py",
+        "gamma = task.gamma(cfg.q.gamma)", "gamma = 0.5",
         ["tests/test_baselines.py::test_each_algo_discounts_with_the_env_gamma_and_reads_its_data"],
     ),
     Mutation(

@@ -14,8 +14,9 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   geometric mean of ŵ over the episode (``ratio.aggregate=episode``); :func:`expert_like_episodes` selects the
   episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``), the score
   :func:`expert_like_scores` gives each row.
-- :func:`weights_over`: stage 1's hand-over to stage 2 in one call: ŵ over a dataset (fitted, exact or 1), shaped
-  and stored, with the fitter's verdict, the expert-like rows and the figures recorded with the weights.
+- :class:`Weighting`: where ŵ comes from and how it is shaped; its :meth:`~Weighting.over` is stage 1's hand-over to
+  stage 2 in one call: ŵ over a dataset (fitted, exact or 1), shaped and stored, with the fitter's verdict, the
+  expert-like rows and the figures recorded with the weights.
 """
 from torchrl_wbrm.ratio.fitting import (
     CategoricalToOneHot,
@@ -32,7 +33,7 @@ from torchrl_wbrm.ratio.storing import (
     compute_density_ratio,
     store_density_ratio,
 )
-from torchrl_wbrm.ratio.weighting import WeightsOver, expert_like_figures, raw_density_ratio, weights_over
+from torchrl_wbrm.ratio.weighting import Weighting, WeightsOver, expert_like_figures
 from torchrl_wbrm.ratio.weights import episode_weights, expert_like_episodes, expert_like_scores, shape_weights
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "MissingWeightsError",
     "NonFiniteWeightsError",
     "StoredWeightsFollowRows",
+    "Weighting",
     "WeightsOver",
     "as_tensordict",
     "compute_density_ratio",
@@ -51,8 +53,6 @@ __all__ = [
     "expert_like_scores",
     "fit_density_ratio",
     "holdout_split",
-    "raw_density_ratio",
     "shape_weights",
     "store_density_ratio",
-    "weights_over",
 ]

@@ -258,7 +258,8 @@ class DensityRatioFitter:
         self.behaviour_buffer = make_replay_buffer(b_train.select(*self.keys))
         self.expert_buffer = make_replay_buffer(e_train.select(*self.keys))
         self.batch_size = int(batch_size)
-        self.sampler = PairedSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, keys=self.keys)
+        self.sampler = PairedSampler(self.behaviour_buffer, self.expert_buffer, self.batch_size, keys=self.keys,
+                                     device=self.device)  # gathered straight into preallocated device tensors
         self.holdout = TensorDict(
             {BEHAVIOUR: b_hold.select(*self.keys), EXPERT: e_hold.select(*self.keys)}, batch_size=[]
         ).to(self.device)

@@ -1,6 +1,6 @@
-"""Stage 1's hand-over to stage 2 in one call: :func:`weights_over` computes ŵ over a dataset (the fitted network's,
-the exact ratio, or 1), shapes it and stores it in the rows, and returns with it the fitter's verdict, the rows of
-the dataset's expert-like episodes and the figures recorded with the weights.
+"""Stage 1's hand-over to stage 2 in one call: :meth:`Weighting.over` computes ŵ over a dataset (the fitted
+network's, the exact ratio, or 1), shapes it and stores it in the rows, and returns with it the fitter's verdict, the
+rows of the dataset's expert-like episodes and the figures recorded with the weights.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from torchrl_wbrm.objectives.functional import relative_density_ratio
 from torchrl_wbrm.ratio.storing import compute_density_ratio, store_density_ratio
 from torchrl_wbrm.ratio.weights import episode_weights, expert_like_scores
 
-__all__ = ["SOURCES", "WeightsOver", "expert_like_figures", "raw_density_ratio", "weights_over"]
+__all__ = ["SOURCES", "Weighting", "WeightsOver", "expert_like_figures"]
 
 #: where ŵ comes from: the fitted network, the exact ratio (where the task knows it), or nowhere (ŵ ≡ 1)
 SOURCES = ("learned", "exact", "none")
@@ -25,7 +25,7 @@ SOURCES = ("learned", "exact", "none")
 
 @dataclass
 class WeightsOver:
-    """What :func:`weights_over` hands to stage 2.
+    """What :meth:`Weighting.over` hands to stage 2.
 
     Attributes:
         data: the rows given, ŵ stored under ``key`` (``[N, 1]``, in the observations' dtype), and, with
@@ -69,34 +69,11 @@ def expert_like_figures(raw: torch.Tensor, episode: torch.Tensor,
     return rows, figures
 
 
-@torch.no_grad()
-def raw_density_ratio(data: TensorDictBase, *, source: str, network=None, true_ratio: Callable | None = None,
-                      relative_beta: float = 0.0, device=None) -> torch.Tensor:
-    """ŵ over the rows of ``data`` before any shaping, ``[N, 1]``: ``network``'s (``source="learned"``), the exact
-    ratio (``"exact"``, relative with ``relative_beta``) or 1 (``"none"``); see :func:`weights_over`."""
-    if source not in SOURCES:
-        raise ValueError(f"weights_over: source must be one of {SOURCES}, got {source!r}.")
-    if source == "learned":
-        return compute_density_ratio(network, data, chunk_size=8192, device=device)
-    if source == "exact":
-        raw = true_ratio(data.select("observation", "action"))[DENSITY_RATIO]
-        return relative_density_ratio(raw, relative_beta) if relative_beta else raw
-    return torch.ones(data.shape[0], 1)
+@dataclass
+class Weighting:
+    """Where a run's ŵ comes from and how it is shaped; :meth:`over` is stage 1's whole hand-over to stage 2.
 
-
-@torch.no_grad()
-def weights_over(data: TensorDictBase, *, source: str, network=None, true_ratio: Callable | None = None,
-                 fitter=None, relative_beta: float = 0.0, aggregate: str = "transition", temper: float = 1.0,
-                 clip: float | None = None, mix: float = 0.0, self_normalise: bool = True,
-                 expert_like: bool = False, mark_expert_like: bool = False, true_expert_episodes=None,
-                 key: str = DENSITY_RATIO, device=None) -> WeightsOver:
-    """ŵ over the rows of ``data``, shaped and stored there; stage 1's whole hand-over to stage 2.
-
-    Args:
-        data: the rows (``"observation"``, ``"action"``; ``"episode"`` for ``aggregate="episode"`` and the
-            expert-like episodes). Changed in place: the weights are stored in it.
-
-    Keyword Args:
+    Attributes:
         source: ``"learned"`` (``network``'s ŵ, judged by ``fitter``), ``"exact"`` (``true_ratio``, relative with
             ``relative_beta``: :func:`~torchrl_wbrm.objectives.functional.relative_density_ratio`) or ``"none"``
             (ŵ ≡ 1, stored unshaped).
@@ -105,28 +82,59 @@ def weights_over(data: TensorDictBase, *, source: str, network=None, true_ratio:
         fitter: the :class:`~torchrl_wbrm.ratio.DensityRatioFitter` whose verdict on the raw ŵ is returned.
         aggregate: ``"episode"``: each row gets its episode's weight (:func:`~torchrl_wbrm.ratio.episode_weights`).
         temper, clip, mix, self_normalise: the shaping (:func:`~torchrl_wbrm.ratio.store_density_ratio`).
-        expert_like: find the rows of the expert-like episodes (:func:`expert_like_figures`);
-            ``mark_expert_like`` also marks them in ``data`` under ``"expert_like"``.
-        true_expert_episodes: the ids of the data's true expert episodes, for the expert-like figures.
-        key: the entry the weights are stored under.
         device: where the network runs.
-
-    Raises:
-        NonFiniteWeightsError: a weight is not finite (raised by :func:`~torchrl_wbrm.ratio.store_density_ratio`).
     """
-    raw = raw_density_ratio(data, source=source, network=network, true_ratio=true_ratio,
-                            relative_beta=relative_beta, device=device)
-    verdict = fitter.verdict(raw) if source == "learned" and fitter is not None else None
-    rows, figures = None, {}
-    if expert_like or mark_expert_like:
-        rows, figures = expert_like_figures(raw, data[EPISODE], true_expert_episodes)
-        if mark_expert_like:
-            data.set(EXPERT_LIKE, rows.reshape(data.shape))
-    w = raw
-    if aggregate == "episode" and source != "none":
-        w = episode_weights(w, data[EPISODE])
-    stored = store_density_ratio(data, w, key=key, temper=temper, clip=clip, mix=mix,
-                                 self_normalise=self_normalise and source != "none", keepdim=True,
-                                 dtype=data["observation"].dtype)
-    return WeightsOver(data=data, weights=stored, raw=raw, verdict=verdict, expert_like=rows,
-                       figures={**ratio_error(stored), **figures})
+
+    source: str = "none"
+    network: Callable | None = None
+    true_ratio: Callable | None = None
+    fitter: object | None = None
+    relative_beta: float = 0.0
+    aggregate: str = "transition"
+    temper: float = 1.0
+    clip: float | None = None
+    mix: float = 0.0
+    self_normalise: bool = True
+    device: object | None = None
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"Weighting: source must be one of {SOURCES}, got {self.source!r}.")
+
+    @torch.no_grad()
+    def raw(self, data: TensorDictBase) -> torch.Tensor:
+        """ŵ over the rows of ``data`` before any shaping, ``[N, 1]``: the network's, the exact ratio or 1."""
+        if self.source == "learned":
+            return compute_density_ratio(self.network, data, chunk_size=8192, device=self.device)
+        if self.source == "exact":
+            raw = self.true_ratio(data.select("observation", "action"))[DENSITY_RATIO]
+            return relative_density_ratio(raw, self.relative_beta) if self.relative_beta else raw
+        return torch.ones(data.shape[0], 1)
+
+    @torch.no_grad()
+    def over(self, data: TensorDictBase, *, expert_like: bool = False, mark_expert_like: bool = False,
+             true_expert_episodes=None, key: str = DENSITY_RATIO) -> WeightsOver:
+        """ŵ over the rows of ``data`` (``"observation"``, ``"action"``; ``"episode"`` for ``aggregate="episode"`` and
+        the expert-like episodes), shaped and stored there under ``key`` (``data`` is changed in place), with the
+        fitter's verdict, the figures and, with ``expert_like``, the rows of the expert-like episodes
+        (:func:`expert_like_figures`; ``mark_expert_like`` also marks them in ``data`` under ``"expert_like"``;
+        ``true_expert_episodes``: the ids of the data's true expert episodes, for their figures).
+
+        Raises:
+            NonFiniteWeightsError: a weight is not finite (raised by :func:`~torchrl_wbrm.ratio.store_density_ratio`).
+        """
+        raw = self.raw(data)
+        verdict = self.fitter.verdict(raw) if self.source == "learned" and self.fitter is not None else None
+        rows, figures = None, {}
+        if expert_like or mark_expert_like:
+            rows, figures = expert_like_figures(raw, data[EPISODE], true_expert_episodes)
+            if mark_expert_like:
+                data.set(EXPERT_LIKE, rows.reshape(data.shape))
+        w = raw
+        if self.aggregate == "episode" and self.source != "none":
+            w = episode_weights(w, data[EPISODE])
+        stored = store_density_ratio(data, w, key=key, temper=self.temper, clip=self.clip, mix=self.mix,
+                                     self_normalise=self.self_normalise and self.source != "none", keepdim=True,
+                                     dtype=data["observation"].dtype)
+        return WeightsOver(data=data, weights=stored, raw=raw, verdict=verdict, expert_like=rows,
+                           figures={**ratio_error(stored), **figures})

@@ -1,25 +1,14 @@
-"""The two-stage WBRM trainer used by every recipe.
+"""The two-stage WBRM trainer used by every recipe: set-up, one loop for both stages, results.
 
-Stage 1 fits ŵ with :class:`~torchrl_wbrm.objectives.RobustDensityRatioLoss` on S^b and S^e, with a held-out split
-for early stopping; ŵ is then computed *once* over D and stored in D's replay buffer under ``"density_ratio"``
-(optionally shaped and self-normalised), never recomputed per batch. Both are :mod:`torchrl_wbrm.ratio`'s public
-pieces (:class:`~torchrl_wbrm.ratio.DensityRatioFitter`, stepped and evaluated from this trainer's loop, and
-:func:`~torchrl_wbrm.ratio.weights_over`, the hand-over to stage 2 in one call), which a script can use without a
-trainer. Stage 2 trains Q (and the actor) with :class:`~torchrl_wbrm.objectives.WeightedBellmanLoss`, torchrl's
-``SoftUpdate`` and periodic evaluation; ``q.select`` is :mod:`torchrl_wbrm.training.selection`'s, the checkpoint
-format :mod:`torchrl_wbrm.training.checkpoint`'s and ``results.json`` :mod:`torchrl_wbrm.training.run_results`'.
-
-Baselines are configurations of the same trainer (``algo=...``): :mod:`torchrl_wbrm.algos` (one file per algorithm)
-builds each method's loss, optimisers, step function and evaluated policy; stage 1 runs only for an algo registered
-with ``fits_ratio`` (``wbrm``; ``bc`` with ``baselines.bc.data=weighted``) and a learned ratio. Everything
-env-specific (the data, the action box, γ, the evaluator and the ground truth) is the env's
-:class:`~torchrl_wbrm.tasks.Task`: the trainer never asks which env it runs.
-
-Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm progress with running figures, logging,
-evaluation, checkpoints and the stops (divergence, signals, Q's bound: :mod:`torchrl_wbrm.training.stops`); the seeds
-of ``seeds=[...]`` run through it one after another (:mod:`torchrl_wbrm.training.seeds`). A checkpoint holds the
-models, optimisers, early-stopping state, RNG states, step and history; ``WBRMTrainer(cfg, run_dir, resume=True)``
-continues from it and ends bit-identical to an uninterrupted run.
+Set-up builds the run's parts from its config (:mod:`torchrl_wbrm.training.parts`): the data, stage 1's
+:class:`~torchrl_wbrm.ratio.DensityRatioFitter` (run only for an algo registered with ``fits_ratio`` and a learned
+ratio), stage 2's algo (:mod:`torchrl_wbrm.algos`: every baseline is a configuration of this trainer, ``algo=...``)
+and the run's evaluations (:mod:`torchrl_wbrm.training.evaluation`); everything env-specific is the env's
+:class:`~torchrl_wbrm.tasks.Task`. Between the stages, :meth:`~torchrl_wbrm.ratio.Weighting.over` computes ŵ once over
+D and stores it in stage 2's buffer. Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm
+progress, logging, evaluation, checkpoints (:mod:`torchrl_wbrm.training.checkpoint`'s format; a resume ends
+bit-identical to an uninterrupted run) and the stops (:mod:`torchrl_wbrm.training.stops`). ``q.select`` is
+:mod:`torchrl_wbrm.training.selection`'s, ``results.json`` :mod:`torchrl_wbrm.training.run_results`'.
 """
 from __future__ import annotations
 
@@ -27,7 +16,6 @@ import copy
 import math
 import os
 import time
-import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -35,57 +23,29 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_wbrm.data import OfflineDatasets, make_replay_buffer
-from torchrl_wbrm.data.datasets import split_by_episode
-from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
-from torchrl_wbrm.tasks import Evaluator, Task, cached_offline_datasets, get_task
-from torchrl_wbrm.evaluation import ratio_error
-from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, EPISODE, HELD_OUT_LOSS, HISTORY, RESULTS
-from torchrl_wbrm.modules import DensityRatioNetwork
+from torchrl_wbrm.data import make_replay_buffer
+from torchrl_wbrm.data.sampling import BufferBatches
+from torchrl_wbrm.tasks import Task, get_task
+from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, HELD_OUT_LOSS, HISTORY, RESULTS
 from torchrl_wbrm.modules.action_scaling import ActionScaling
-from torchrl_wbrm.objectives import RobustDensityRatioLoss
-from torchrl_wbrm.objectives.functional import bellman_residual
-from torchrl_wbrm.ratio import DensityRatioFitter, NonFiniteWeightsError
-from torchrl_wbrm.ratio.weighting import WeightsOver, raw_density_ratio, weights_over
-from torchrl_wbrm.algos import Algo, AlgoContext, adam_options, build_algo, get_algo
-from torchrl_wbrm.training.checkpoint import (checkpoint_state, data_fingerprint, restore_training_state, same_data,
+from torchrl_wbrm.ratio import NonFiniteWeightsError, Weighting, WeightsOver
+from torchrl_wbrm.training.checkpoint import (checkpoint_state, restore_training_state, same_data,
                                               set_rng_state, set_seed, write_checkpoint)
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
 from torchrl_wbrm.objectives._utils import NonFiniteError
-from torchrl_wbrm.training.offline_value import offline_value_figures
+from torchrl_wbrm.training.evaluation import RunEvaluation
+from torchrl_wbrm.training.parts import check_d_settings, load_run_data, make_algo, make_ratio_fitter, step_schedulers
 from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion
 from torchrl_wbrm.training.results import pause_for_test, write_json
 from torchrl_wbrm.training.run_results import diverged_results, finished_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, unique_dir
-from torchrl_wbrm.training.stops import (
-    QBound,
-    RunInterrupted,
-    StopNow,
-    StopSignals,
-    TrainingDiverged,
-    first_non_finite,
-    non_finite_parameter,
-)
+from torchrl_wbrm.training.stops import (RunInterrupted, StopNow, StopSignals, TrainingDiverged, first_non_finite,
+                                         non_finite_parameter)
 
 __all__ = ["WBRMTrainer", "default_run_dir"]
-
-
-def step_schedulers(schedulers: dict) -> None:
-    """One step of each learning-rate schedule in ``schedulers`` (an actor updated every k-th step has not stepped
-    its optimiser yet at step 1: torch's warning about that order is expected and silenced)."""
-    if not schedulers:
-        return
-    if all(getattr(scheduler, "_step_count", 0) > 1 for scheduler in schedulers.values()):
-        for scheduler in schedulers.values():  # torch warns only on a schedule's first step: no filter to set up
-            scheduler.step()
-        return
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
-        for scheduler in schedulers.values():
-            scheduler.step()
 
 
 def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
@@ -126,7 +86,6 @@ class WBRMTrainer:
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger="config", resume: bool = False,
                  progress: bool = True, evaluation: bool = True, claim: RunDirClaim | None = None):
         self._claim: RunDirClaim | None = None
-        self.evaluation = evaluation
         # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
         # one run's data, so a prepared task already used by another trainer is built anew
         prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)
@@ -151,7 +110,7 @@ class WBRMTrainer:
         self._claim, self._resume_sd = check_run_request(self.cfg, self.run_dir, resume=resume,
                                                          claim=self._given_claim(claim), task=self.task)
         try:
-            self._init(resume, logger, progress)
+            self._init(resume, logger, progress, evaluation)
         except BaseException:
             self.release()
             raise
@@ -175,7 +134,7 @@ class WBRMTrainer:
         if self.__dict__.get("_claim") is not None:
             self.release()
 
-    def _init(self, resume: bool, logger, progress: bool) -> None:
+    def _init(self, resume: bool, logger, progress: bool, evaluation: bool) -> None:
         if resume:
             self.resume_changes = changed_keys(dict(self._resume_sd["config"]), self.config_record())
         else:
@@ -191,11 +150,7 @@ class WBRMTrainer:
         set_seed(self.cfg.seed)
         self.history: list[dict] = []
         self.state = {"stage": "ratio", "step": 0}
-        self._setup_data()
-        self._setup_ratio()
-        self._setup_q()
-        self._check_d_settings()
-        self._setup_evaluation()
+        self._setup(evaluation)
         if resume:
             self._load_checkpoint()
             reevaluated = self.state["stage"] == "done" and any(k.startswith("eval.") for k in self.resume_changes)
@@ -205,147 +160,35 @@ class WBRMTrainer:
                                       self.config_record())
 
     # ------------------------------------------------------------------ setup
-    def _check_d_settings(self) -> None:
-        """Refuse, in one line and before stage 1, a setting this run cannot carry out after it: ``q.expert_bc_from_d``
-        for an algo without the S^e cloning term, and, on data without episode ids (key ``"episode"``), a setting that
-        reads D's episodes: ``q.expert_bc_from_d``, an algo that marks D's expert-like episodes,
-        ``ratio.aggregate='episode'`` where the algo reads a ratio, and a ``q.select`` on D's expert-like episodes."""
-        if self.cfg.q.expert_bc_from_d and self.algo.cloning is None:  # validate_config refuses it for the built-in
-            # algos without the S^e cloning term; a custom algo may lack one
-            raise ValueError(f"q.expert_bc_from_d=true extends the actor's S^e cloning term, which algo="
-                             f"{self.cfg.algo} does not have.")
-        if EPISODE in self.q_train_data.keys():
-            return
-        reads_ratio = self.algo.uses_ratio and self.cfg.ratio.source != "none"
-        for needed, setting, instead in (
-                (self.cfg.q.expert_bc_from_d, "q.expert_bc_from_d=true", "set q.expert_bc_from_d=false"),
-                (self.algo.marks_expert_like, f"algo={self.cfg.algo}'s cloning of D's expert-like episodes",
-                 "choose another of its settings"),
-                (reads_ratio and self.cfg.ratio.aggregate == "episode", "ratio.aggregate='episode'",
-                 "use ratio.aggregate=transition"),
-                (self.cfg.q.select in EXPERT_LIKE, f"q.select={self.cfg.q.select}",
-                 "use q.select=held_out_weighted_residual")):
-            if needed:
-                raise ValueError(f"{setting} needs D's episode ids (key 'episode'), which these data do not hold: "
-                                 f"{instead}.")
-
-    def _setup_data(self) -> None:
-        t0 = time.perf_counter()
-        # self.task: everything env-specific (data, action box, γ, evaluator, truth)
-        if self.cfg.data_cache:
-            self.datasets: OfflineDatasets = cached_offline_datasets(self.cfg.env, seed=self.cfg.seed, cache_dir=self.cfg.data_cache)
-        else:
-            self.datasets = self.task.make_datasets(seed=self.cfg.seed)
-        self.task.attach(self.datasets)
-        self.data_seconds = time.perf_counter() - t0 + self.task.check_seconds  # the checks' read of the data too
-        d = self.datasets.transitions[:]
-        gen = torch.Generator().manual_seed(self.cfg.seed + 23)
-        self.q_train_data, self.q_holdout = split_by_episode(d, self.cfg.q.holdout_fraction, generator=gen)
-        self.observation_dim = d["observation"].shape[-1]
-        self.action_dim = d["action"].shape[-1]
-        self.action_spec = self.task.action_spec()
-        self.gamma = self.task.gamma(self.cfg.q.gamma)
-        self.q_bound = QBound(float(d["next", "reward"].abs().max()), self.gamma)  # Q's scale: the run's one rule
-        # the SHA-256 of every tensor of D, S^b and S^e: a resume on different data is refused
-        self.data_fingerprint = data_fingerprint(self.datasets)
-
-    def _setup_ratio(self) -> None:
+    def _setup(self, evaluation: bool) -> None:
+        """The run's parts (:mod:`torchrl_wbrm.training.parts`, built in the order they draw random numbers): its data,
+        stage 1's fitter, stage 2's algo and the settings' checks on them; then its evaluations (the task's evaluator
+        where ``evaluation``) and where its ŵ comes from."""
+        data = load_run_data(self.cfg, self.task)
+        self.datasets, self.q_train_data, self.q_holdout = data.datasets, data.train, data.holdout
+        self.action_spec, self.gamma, self.q_bound = data.action_spec, data.gamma, data.q_bound
+        self.data_fingerprint, self.data_seconds = data.fingerprint, data.seconds
+        self.ratio_fitter = make_ratio_fitter(self.cfg, data, self.device)
+        self.ratio_network = None if self.ratio_fitter is None else self.ratio_fitter.network
+        self.algo, self.schedulers = make_algo(self.cfg, self.task, data, self.device)
+        self.q_loss, self.actor, self.optimisers = self.algo.loss, self.algo.policy, self.algo.optimisers
+        check_d_settings(self.cfg, self.algo, self.q_train_data)
+        self.q_buffer, self.selection = None, None  # built after stage 1 (_build_q_buffer), on the data with ŵ
         rc = self.cfg.ratio
-        self.ratio_network = None
-        self.ratio_fitter: DensityRatioFitter | None = None
-        if rc.source != "learned" or not get_algo(self.cfg.algo).fits_ratio_for(self.cfg):
-            return
-        self.ratio_network = DensityRatioNetwork(
-            self.observation_dim,
-            self.action_dim,
-            bounds=tuple(rc.bounds),
-            parameterisation=rc.parameterisation,
-            num_cells=rc.num_cells,
-            activation=rc.activation,
-            layer_norm=rc.layer_norm,
-        ).to(self.device)
-        ratio_loss = RobustDensityRatioLoss(
-            self.ratio_network,
-            alpha="kl" if rc.divergence == "kl" else rc.alpha,
-            normalisation_coefficient=rc.normalisation_coefficient,
-            non_negative_correction=rc.non_negative_correction,
-            relative_beta=rc.relative_beta,
-        )
-        ratio_params = list(ratio_loss.parameters())
-        optimiser = torch.optim.Adam(ratio_params, lr=rc.lr, weight_decay=rc.weight_decay, **adam_options(ratio_params))
-        # stage 1 is torchrl_wbrm.ratio's fitter (held-out split of S^b and S^e, best state, patience), stepped and
-        # evaluated from this trainer's loop
-        self.ratio_fitter = DensityRatioFitter(
-            ratio_loss, self.datasets.behaviour_samples, self.datasets.expert_samples, batch_size=rc.batch_size,
-            optimizer=optimiser, grad_clip=rc.grad_clip, holdout_fraction=rc.holdout_fraction,
-            generator=torch.Generator().manual_seed(self.cfg.seed + 17), patience=rc.patience, device=self.device,
-        )
-        # the fitter's paired batches, gathered straight into preallocated tensors on the device
-        self.ratio_batches = PairedSampler(self.ratio_fitter.behaviour_buffer, self.ratio_fitter.expert_buffer,
-                                           rc.batch_size, device=self.device)
-        self.ratio_fitter.sampler = self.ratio_batches
-
-    def _setup_q(self) -> None:
-        """Stage 2 (or the baseline named by ``algo``): loss, optimisers, step function and evaluated policy."""
-        qc = self.cfg.q
-        d = self.datasets.transitions[:]
-        init_bias = d["next", "reward"].mean().item() / (1 - self.gamma) if qc.init_bias else 0.0
-        loc = scale = None
-        if qc.normalise_observations:  # D's statistics, a fixed input layer of every network
-            observations = self.q_train_data["observation"].double()
-            loc, scale = observations.mean(0).float(), observations.std(0).clamp_min(1e-6).float()
-        context = AlgoContext(
-            cfg=self.cfg,
-            observation_dim=self.observation_dim,
-            action_dim=self.action_dim,
-            action_spec=self.action_spec,
-            gamma=self.gamma,
-            q_initial_bias=init_bias,
-            device=self.device,
-            observation_loc=loc,
-            observation_scale=scale,
-            task=self.task,
-        )
-        self.algo: Algo = build_algo(self.cfg.algo, context)
-        self.schedulers = {}
-        if qc.lr_schedule == "cosine":  # every optimiser annealed over the step budget, stepped once per trainer step
-            self.schedulers = {name: torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=qc.steps)
-                               for name, optimiser in self.algo.optimisers.items()}
-        self.q_loss = self.algo.loss
-        self.actor = self.algo.policy  # the policy evaluated (deterministic mode)
-        self.optimisers = self.algo.optimisers
-        self.q_buffer = None  # built after stage 1, with the weights in it
-        if qc.select != "last" and self.algo.bellman_loss is None:
-            raise ValueError(f"q.select={qc.select} chooses by the held-out Bellman residual, which "
-                             f"algo={self.cfg.algo} does not fit: use q.select=last or an algo with one "
-                             f"(wbrm, brm, fqi, mabo).")
-        # q.select other than last: its criterion and best-so-far (training/selection.py), built on the data with
-        # the weights, in _build_q_buffer
-        self.selection: Selection | None = None
-
-    def _setup_evaluation(self) -> None:
-        """The task's evaluator: its evaluation samples (where Q* is known) and the exact ratio (where known)."""
-        if not self.evaluation:
-            if self.cfg.ratio.source == "exact" and self.algo.uses_ratio:
-                raise ValueError("evaluation=False builds no evaluator, and ratio.source=exact reads the evaluator's "
-                                 "exact ratio: build the trainer with evaluation=True.")
-            self.evaluator, self.eval_samples, self.true_ratio = None, {}, None
-            return
-        self.evaluator: Evaluator = self.task.evaluator(self.cfg.eval)
-        self.eval_samples = self.evaluator.eval_samples
-        self.true_ratio = self.evaluator.true_ratio
+        if not evaluation and rc.source == "exact" and self.algo.uses_ratio:
+            raise ValueError("evaluation=False builds no evaluator, and ratio.source=exact reads the evaluator's "
+                             "exact ratio: build the trainer with evaluation=True.")
+        self.evaluation = RunEvaluation(self.cfg, self.task, self.algo, self.q_train_data, self.q_holdout, self.device,
+                                        build=evaluation)
+        self.weighting = Weighting(
+            source=rc.source if self.algo.uses_ratio else "none", network=self.ratio_network,
+            true_ratio=self.evaluation.true_ratio, fitter=self.ratio_fitter, relative_beta=rc.relative_beta,
+            aggregate=rc.aggregate, temper=rc.temper, clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise,
+            device=self.device)
 
     # ------------------------------------------------------------------ the shared loop
-    def _run_stage(
-        self,
-        name: str,
-        total_steps: int,
-        step_fn: Callable[[int], dict],
-        *,
-        eval_every: int,
-        eval_fn: Callable[[int], bool | None],
-        until: int | None = None,
-    ) -> bool:
+    def _run_stage(self, name: str, total_steps: int, step_fn: Callable[[int], dict], *, eval_every: int,
+                   eval_fn: Callable[[int], bool | None], until: int | None = None) -> bool:
         """Run ``step_fn`` from the checkpointed step to ``total_steps``; returns ``False`` if stopped by ``until``.
 
         Every ``logger.log_every`` steps the step's figures are logged; every ``eval_every`` steps ``eval_fn`` runs
@@ -443,68 +286,51 @@ class WBRMTrainer:
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
         result = self.ratio_fitter.evaluate(step)
-        held_out = result[HELD_OUT_LOSS]
-        record = {"stage": "ratio", "step": step, HELD_OUT_LOSS: held_out}
-        record.update(self._ratio_truth_figures())
-        self.history.append(record)
-        if not math.isfinite(held_out):
-            raise TrainingDiverged("ratio evaluation", step, HELD_OUT_LOSS, held_out)
-        self._log({f"ratio_eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
+        checked = {HELD_OUT_LOSS: result[HELD_OUT_LOSS]}
+        record = {"stage": "ratio", "step": step, **checked, **self.evaluation.ratio_figures(self.ratio_network)}
+        self._record(record, "ratio evaluation", "ratio_eval", checked)
         return result["stop"]
 
-    @torch.no_grad()
-    def _ratio_truth_figures(self) -> dict:
-        if self.true_ratio is None or self.ratio_network is None:
-            return {}
-        b = self.eval_samples["behaviour"].to(self.device)
-        w_hat = self.ratio_network(b.clone())[DENSITY_RATIO]
-        w = self.true_ratio(b.clone())[DENSITY_RATIO]
-        return {f"ratio_{k}": v for k, v in ratio_error(w_hat, w).items()}
+    def _record(self, record: dict, what: str, prefix: str, checked: dict) -> None:
+        """An evaluation's ``record`` into the history; a non-finite figure of ``checked`` stops the run (naming
+        ``what``), else the record's floats are logged under ``prefix``."""
+        self.history.append(record)
+        bad = first_non_finite(checked)
+        if bad is not None:
+            raise TrainingDiverged(what, record["step"], bad[0], bad[1])
+        self._log({f"{prefix}/{k}": v for k, v in record.items() if isinstance(v, float)}, record["step"])
 
-    # ------------------------------------------------------------------ weights over D
-    def _weights_over(self, data: TensorDictBase, source: str, what: str, **kwargs) -> WeightsOver:
-        """:func:`~torchrl_wbrm.ratio.weights_over` with the run's ratio settings; non-finite weights stop the run,
-        naming ``what``."""
-        rc = self.cfg.ratio
+    # ------------------------------------------------------------------ stage 1's hand-over to stage 2
+    def _weights_over(self, data: TensorDictBase, what: str, **kwargs) -> WeightsOver:
+        """The run's :meth:`~torchrl_wbrm.ratio.Weighting.over`; non-finite weights stop the run, naming ``what``."""
         try:
-            return weights_over(data, source=source, network=self.ratio_network, true_ratio=self.true_ratio,
-                                relative_beta=rc.relative_beta, aggregate=rc.aggregate, temper=rc.temper,
-                                clip=rc.clip, mix=rc.mix, self_normalise=rc.self_normalise, device=self.device,
-                                **kwargs)
+            return self.weighting.over(data, **kwargs)
         except NonFiniteWeightsError as err:
             raise TrainingDiverged(what, 0, DENSITY_RATIO, err.value) from err
 
-    def _raw_weights(self, d: TensorDictBase, source: str) -> torch.Tensor:
-        """ŵ over the rows of ``d`` before any shaping (:func:`~torchrl_wbrm.ratio.raw_density_ratio`)."""
-        return raw_density_ratio(d, source=source, network=self.ratio_network, true_ratio=self.true_ratio,
-                                 relative_beta=self.cfg.ratio.relative_beta, device=self.device)
-
     @torch.no_grad()
     def _build_q_buffer(self) -> None:
-        """Stage 1's hand-over: ŵ over D's training rows, stored in stage 2's buffer (one call into
-        :mod:`torchrl_wbrm.ratio`), the fitter's verdict, D's expert-like episodes where a setting reads them, and
-        the ``q.select`` criterion on those data."""
-        self.q_train_weights = None  # the weights stage 2 gave D's training rows (None: ŵ ≡ 1)
-        self.ratio_check = None
-        self.selection = None
+        """Stage 1's hand-over in one call into :mod:`torchrl_wbrm.ratio` (ŵ over D's training rows, stored there,
+        the fitter's verdict, D's expert-like episodes where a setting reads them, the figures), then stage 2's
+        buffer of those rows and the ``q.select`` criterion on them."""
+        self.q_train_weights = self.ratio_check = self.selection = None  # q_train_weights None: ŵ ≡ 1
+        self.weight_stats = {}
         if self.algo.data == "expert":
             self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
-            self.weight_stats = {}
             return
         qc = self.cfg.q
-        source = self.cfg.ratio.source if self.algo.uses_ratio else "none"
         over = self._weights_over(
-            self.q_train_data.clone(), source, "weights over D", fitter=self.ratio_fitter,
-            expert_like=qc.expert_bc_from_d or qc.select in EXPERT_LIKE, mark_expert_like=self.algo.marks_expert_like,
+            self.q_train_data.clone(), "weights over D", expert_like=qc.expert_bc_from_d or qc.select in EXPERT_LIKE,
+            mark_expert_like=self.algo.marks_expert_like,
             true_expert_episodes=self.datasets.metadata.get("behaviour_expert_episode_ids"))
         self.ratio_check = over.verdict
         if qc.expert_bc_from_d:  # the actor's cloning term: S^e and these episodes
             self.algo.cloning.add_expert_like(over.data[over.expert_like])
-        self.q_train_weights = None if source == "none" else over.weights
+        self.q_train_weights = None if self.weighting.source == "none" else over.weights
         d = over.data if self.algo.map_data is None else self.algo.map_data(over.data)
         self.q_buffer = make_replay_buffer(d, batch_size=qc.batch_size)
         if qc.select != "last":
-            held_out = lambda: self._weights_over(self.q_holdout.clone(), source,  # noqa: E731
+            held_out = lambda: self._weights_over(self.q_holdout.clone(),  # noqa: E731
                                                   "weights over the held-out episodes").weights
             rows = over.data[over.expert_like] if over.expert_like is not None else None
             self.selection = Selection(make_criterion(
@@ -519,16 +345,7 @@ class WBRMTrainer:
         (:func:`~torchrl_wbrm.training.offline_value.offline_value_figures`: FQE, and where stage 2 read ŵ, FQE
         weighted as ``eval.offline_value_weights`` says): ``(final figures, record)``. ``steps``: FQE's steps
         (default ``eval.offline_value_steps``). Runs on a forked generator: training draws what it would without it."""
-        weights = self.q_train_weights
-        if weights is not None and self.cfg.eval.offline_value_weights == "ratio":  # ŵ before any shaping
-            w = self._raw_weights(self.q_train_data, self.cfg.ratio.source).reshape(-1, 1).double()
-            weights = (w / w.mean()).to(self.q_train_weights.dtype)
-        with torch.random.fork_rng():
-            figures, record = offline_value_figures(
-                self.actor, self.q_train_data, self.task.return_quantity(), weights=weights,
-                steps=steps or self.cfg.eval.offline_value_steps, seed=self.cfg.seed)
-        record["weights"] = None if weights is None else self.cfg.eval.offline_value_weights
-        return figures, record
+        return self.evaluation.offline_value(self.q_train_weights, self.weighting, steps)
 
     # ------------------------------------------------------------------ stage 2
     def _q_step(self, step: int) -> dict:
@@ -545,68 +362,15 @@ class WBRMTrainer:
         return cached[1]
 
     def _q_eval(self, step: int) -> None:
-        final = step == self.cfg.q.steps
-        selection = self.selection
-        if selection is not None and final and selection.last_state is None:
-            selection.keep_if_best(step, self._selection_figures()[selection.figure], self.q_loss)
-            if selection.best["step"] != step:  # an earlier evaluation's parameters are delivered and scored
-                self.history.append({"stage": "q_last", "step": step, **self.evaluate()})  # for "selection"
-                selection.deliver(self.q_loss)
-        try:
-            if self._stop is not None:  # a signal stops a (long) evaluation at once: StopNow
-                with self._stop.immediately():
-                    figures = self.evaluate(final=final)
-            else:
-                figures = self.evaluate(final=final)
-        except BaseException:
-            if selection is not None and final:  # checkpointed as it was trained: the resumed evaluation selects again
-                selection.restore_last(self.q_loss)
-            raise
-        if selection is not None and not final:
-            selection.keep_if_best(step, figures.get(selection.figure), self.q_loss)
-        if selection is not None and final:
-            figures["selected_step"] = selection.best["step"]
-        record = {"stage": "q", "step": step, **figures}
-        self.history.append(record)
-        bad = first_non_finite({k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
-        if bad is not None:
-            raise TrainingDiverged("q evaluation", step, bad[0], bad[1])
-        self._log({f"eval/{k}": v for k, v in record.items() if isinstance(v, float)}, step)
-        return None
+        record = {"stage": "q", "step": step,
+                  **self.evaluation.stage_two(step, self.selection, self.history, stop=self._stop)}
+        self._record(record, "q evaluation", "eval",
+                     {k: v for k, v in record.items() if k != "step" and not k.endswith(("_ci", "_stderr"))})
 
-    @torch.no_grad()
     def evaluate(self, *, final: bool = False) -> dict:
-        """Evaluate the current actor and Q: flat dict of floats (LQR: regret, return, Q* error, ratio).
-
-        Runs on a forked global generator, so evaluating never changes what training draws next.
-        """
-        with torch.random.fork_rng():
-            return self._evaluate(final=final)
-
-    def _evaluate(self, *, final: bool) -> dict:
-        ec = self.cfg.eval
-        episodes = ec.episodes if final else ec.train_episodes
-        self.actor.eval()
-        try:
-            out = self.evaluator.evaluate(self.actor, episodes=episodes, seed=ec.seed, q_value=self.algo.q_value,
-                                          device=self.device)
-            if self.algo.bellman_loss is not None:
-                out.update(self._selection_figures())
-        finally:
-            self.actor.train()
-        return out
-
-    @torch.no_grad()
-    def _selection_figures(self) -> dict[str, float]:
-        """The current Q's figures that ``q.select`` can minimise: ``"held_out_bellman_residual"``, the mean δ² (any
-        residual form) on the held-out D episodes, and the figure of the run's ``q.select`` criterion
-        (:mod:`torchrl_wbrm.training.selection`)."""
-        held_out = self.q_holdout.clone().set(DENSITY_RATIO, torch.ones(self.q_holdout.shape[0], 1))
-        squared = bellman_residual(*self.algo.bellman_loss.bellman_error(held_out.to(self.device))).pow(2)
-        out = {"held_out_bellman_residual": squared.mean().item()}
-        if self.selection is not None:
-            out[self.selection.figure] = self.selection.criterion.score(squared)
-        return out
+        """Evaluate the current actor and Q (:meth:`~torchrl_wbrm.training.evaluation.RunEvaluation.evaluate`): a flat
+        dict of floats (LQR: regret, return, Q* error, ratio), on a forked global generator."""
+        return self.evaluation.evaluate(self.selection, final=final)
 
     # ------------------------------------------------------------------ run
     def run(self, *, until: int | None = None) -> dict | None:
@@ -617,7 +381,7 @@ class WBRMTrainer:
         kept and ``"diverged"`` names the stage, step and figure), or ``None`` when stopped by ``until``. SIGINT and
         SIGTERM stop it at the next step boundary: a checkpoint is written and :class:`RunInterrupted` raised.
         """
-        if not self.evaluation:
+        if self.evaluation.evaluator is None:
             raise ValueError("This trainer was built with evaluation=False: it can value its policy from D "
                              "(offline_value) but not run; build it with evaluation=True to train or evaluate.")
         if self._claim is None:  # released by an earlier run() (e.g. one stopped by ``until``)
@@ -637,11 +401,9 @@ class WBRMTrainer:
 
     def _run(self, *, until: int | None) -> dict | None:
         if self.state["stage"] == "ratio":
-            if self.ratio_network is not None:
-                self._run_stage(
-                    "ratio", self.cfg.ratio.steps, self._ratio_step,
-                    eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval,
-                )
+            if self.ratio_fitter is not None:
+                self._run_stage("ratio", self.cfg.ratio.steps, self._ratio_step, eval_every=self.cfg.ratio.eval_every,
+                                eval_fn=self._ratio_eval)
                 self.ratio_fitter.best_network()  # the best held-out state
             self.state = {"stage": "q", "step": 0}
             self._build_q_buffer()
@@ -653,9 +415,8 @@ class WBRMTrainer:
             if self.selection is not None:  # from the last step's parameters, not a selected earlier evaluation's
                 self.selection.restore_last(self.q_loss)
         if self.state["stage"] == "q":
-            done = self._run_stage(
-                "q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every, eval_fn=self._q_eval, until=until
-            )
+            done = self._run_stage("q", self.cfg.q.steps, self._q_step, eval_every=self.cfg.q.eval_every,
+                                   eval_fn=self._q_eval, until=until)
             self.save_checkpoint()
             if not done:
                 return None
@@ -664,13 +425,6 @@ class WBRMTrainer:
         elif any(k.startswith("eval.") for k in self.resume_changes):  # a finished run, evaluated anew
             self._q_eval(self.cfg.q.steps)
         return self.results()
-
-    @torch.no_grad()
-    def _q_mean_over_d(self, chunk: int = 8192) -> float:
-        """The current Q̂'s mean over D's training rows (its own state-actions), by the algo's ``q_value``."""
-        d = self.q_train_data
-        total = sum(float(self.algo.q_value(rows.to(self.device))[0].double().sum()) for rows in d.split(chunk))
-        return total / d.shape[0]
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
         """``results.json`` of a run stopped by divergence (:func:`~torchrl_wbrm.training.run_results.diverged_results`),
@@ -686,14 +440,12 @@ class WBRMTrainer:
         """The finished run's results (:func:`~torchrl_wbrm.training.run_results.finished_results`), written with the
         history, then the plots and the logger's summary."""
         offline_value = self.offline_value() if self.cfg.eval.offline_value else None  # FQE on D: no environment
-        q_mean_data = self._q_mean_over_d() if self.algo.q_value is not None and self.algo.data != "expert" else None
         results = finished_results(
-            self.cfg, self.history, datasets=self.datasets, weights=self.weight_stats,
-            ratio_source=self.cfg.ratio.source if self.algo.uses_ratio else "none",
-            ratio_best=self.ratio_fitter.best if self.ratio_network is not None else None,
+            self.cfg, self.history, datasets=self.datasets, weights=self.weight_stats, ratio_source=self.weighting.source,
+            ratio_best=None if self.ratio_fitter is None else self.ratio_fitter.best,
             ratio_check=getattr(self, "ratio_check", None),
             selection_figure=None if self.selection is None else self.selection.figure, offline_value=offline_value,
-            bound=self.q_bound, q_mean_data=q_mean_data, data_seconds=self.data_seconds, config=self.config_record())
+            bound=self.q_bound, q_mean_data=self.evaluation.q_mean_over_d(), data_seconds=self.data_seconds, config=self.config_record())
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / RESULTS, results)
         write_json(self.run_dir / HISTORY, self.history)
@@ -719,7 +471,7 @@ class WBRMTrainer:
         return checkpoint_state(state=self.state, history=self.history, q_loss=self.q_loss, optimisers=self.optimisers,
                                 schedulers=self.schedulers, data_fingerprint=self.data_fingerprint,
                                 config=self.config_record(), selection=self.selection,
-                                ratio_fitter=self.ratio_fitter if self.ratio_network is not None else None)
+                                ratio_fitter=self.ratio_fitter)
 
     def save_checkpoint(self) -> Path:
         """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
@@ -740,16 +492,13 @@ class WBRMTrainer:
         path = self.run_dir / CHECKPOINT
         sd = self._resume_sd
         if not same_data(sd["data_fingerprint"], self.datasets, self.data_fingerprint):
-            raise ValueError(
-                f"Cannot resume from {path}: its data differ from the data this config reads now (the SHA-256 of "
-                f"every tensor of D, S^b and S^e differs: the dataset's files changed, or the env or seed); a resume "
-                f"never mixes two datasets. Start a new run on these data."
-            )
-        self.state = sd["state"]
-        self.history = sd["history"]
+            raise ValueError(f"Cannot resume from {path}: its data differ from the data this config reads now (the "
+                             f"SHA-256 of every tensor of D, S^b and S^e differs: the dataset's files changed, or the "
+                             f"env or seed); a resume never mixes two datasets. Start a new run on these data.")
+        self.state, self.history = sd["state"], sd["history"]
         self._checkpoint_state = dict(self.state)
         restore_training_state(sd, q_loss=self.q_loss, optimisers=self.optimisers, schedulers=self.schedulers,
-                               ratio_fitter=self.ratio_fitter if self.ratio_network is not None else None)
+                               ratio_fitter=self.ratio_fitter)
         if self.state["stage"] != "ratio":
             logger, self.logger = self.logger, None  # the weights were logged when stage 2 first started
             try:
