@@ -222,10 +222,9 @@ class WeightedLoss(LossModule):
         if hasattr(loss, "scalar_output_mode") and loss.scalar_output_mode is None:
             loss.scalar_output_mode = "exclude"  # TorchRL's choice for reduction="none" (its warning's default)
         inner_priority = getattr(getattr(loss, "tensor_keys", None), "priority_weight", None)
-        keys = {"weight": weight_key}
+        super().set_keys(weight=weight_key)
         if inner_priority is not None:
-            keys["priority_weight"] = inner_priority
-        super().set_keys(**keys)
+            super().set_keys(priority_weight=inner_priority)
 
     # ---------------------------------------------------------------- the wrapped loss
     @property
