@@ -10,8 +10,8 @@ states with the policy acting deterministically:
   beside the observation, and an episode's end (``done``, truncation included) stops the bootstrap: the return
   ends there, as the online episode does.
 - ``horizon=None``: the infinite-horizon discounted value ``E_{x_0 ∼ D}[V^π_γ(x_0)]`` (truncation bootstraps), the
-  textbook FQE figure. It is not what a time-limited evaluation measures (on LQR exp1 it is about 12 above the
-  20-step return).
+  textbook FQE figure. It is not what a time-limited evaluation measures (the results:
+  :doc:`/results/offline_value`).
 
 The estimate is ``V̂ = mean_e Q̂(x_0^e, π(x_0^e))`` over D's episodes ``e``; its interval is the percentile bootstrap
 of that mean over episodes (:func:`~torchrl_wbrm.evaluation.bootstrap_ci`). The interval covers the sampling of

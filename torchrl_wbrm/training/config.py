@@ -467,8 +467,8 @@ def resolve_defaults(cfg, task: Task | None = None):
 
 @functools.lru_cache(maxsize=None)
 def config_schema() -> DictConfig:
-    """The :class:`WBRMConfig` schema as an OmegaConf node, built once per process (building it costs about 20 ms
-    of CPU; ``OmegaConf.merge`` copies it and never changes it)."""
+    """The :class:`WBRMConfig` schema as an OmegaConf node, built once per process (its cost: :doc:`/contributing`;
+    ``OmegaConf.merge`` copies it and never changes it)."""
     return OmegaConf.structured(WBRMConfig)
 
 
@@ -653,8 +653,8 @@ def register_configs() -> None:
     """Store the recipes' schemas and every registered algo's node of the ``algo`` group (``algo/<name>``: it sets
     ``algo`` and ``baselines.<name>``) in Hydra's ``ConfigStore``.
 
-    Storing costs about 50 ms (each node is made an OmegaConf node), and a study composes a config per run; so the
-    nodes are stored again only when the registered algos, or the store, changed since the last call."""
+    Storing makes each node an OmegaConf node (its cost: :doc:`/contributing`), and a study composes a config per
+    run; so the nodes are stored again only when the registered algos, or the store, changed since the last call."""
     global _stored
     cs = ConfigStore.instance()
     stored = (id(cs), tuple((name, id(spec)) for name, spec in ALGOS.items()))
