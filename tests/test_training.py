@@ -249,14 +249,15 @@ def test_resume_from_a_stage_1_checkpoint_is_bit_identical(tmp_path):
     full = WBRMTrainer(tiny_config(**cfg), tmp_path / "full", progress=False)
     full_results = full.run()
     cut = WBRMTrainer(tiny_config(**cfg), tmp_path / "cut", progress=False)
-    ratio_step = cut._ratio_step
+    ratio_step, steps = cut.ratio_fitter.step, []
 
-    def interrupted(step):
-        if step == 16:
+    def interrupted():
+        steps.append(len(steps) + 1)
+        if steps[-1] == 16:
             raise KeyboardInterrupt
-        return ratio_step(step)
+        return ratio_step()
 
-    cut._ratio_step = interrupted
+    cut.ratio_fitter.step = interrupted
     with pytest.raises(KeyboardInterrupt):
         cut.run()
     del cut
@@ -296,7 +297,7 @@ def test_ratio_gradient_clipping_bounds_the_step(tmp_path):
         trainer = WBRMTrainer(tiny_config(ratio={"grad_clip": clip, "lr": 1e-2}), tmp_path / str(clip), progress=False)
         before = [p.detach().clone() for p in trainer.ratio_fitter.loss_module.parameters()]
         trainer.ratio_fitter.optimizer = torch.optim.SGD(trainer.ratio_fitter.loss_module.parameters(), lr=1.0)
-        trainer._ratio_step(1)
+        trainer.ratio_fitter.step()
         params = trainer.ratio_fitter.loss_module.parameters()
         return sum((p.detach() - b).norm() ** 2 for p, b in zip(params, before)).sqrt().item()
 

@@ -14,9 +14,8 @@ Layer: above ``objectives`` and ``evaluation``, below ``training`` (which drives
   geometric mean of ŵ over the episode (``ratio.aggregate=episode``); :func:`expert_like_episodes` selects the
   episodes whose self-normalised geometric mean is above 1 (``q.expert_bc_from_d``), the score
   :func:`expert_like_scores` gives each row.
-- :class:`Weighting`: where ŵ comes from and how it is shaped; its :meth:`~Weighting.over` is stage 1's hand-over to
-  stage 2 in one call: ŵ over a dataset (fitted, exact or 1), shaped and stored, with the fitter's verdict, the
-  expert-like rows and the figures recorded with the weights.
+- :meth:`Weighting.over`: stage 1's hand-over to stage 2 in one call: ŵ over a dataset (fitted, exact or 1), shaped
+  and stored, with the fitter's verdict, the expert-like rows and the figures recorded with the weights.
 """
 from torchrl_wbrm.ratio.fitting import (
     CategoricalToOneHot,

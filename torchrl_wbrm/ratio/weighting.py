@@ -25,19 +25,11 @@ SOURCES = ("learned", "exact", "none")
 
 @dataclass
 class WeightsOver:
-    """What :meth:`Weighting.over` hands to stage 2.
-
-    Attributes:
-        data: the rows given, ŵ stored under ``key`` (``[N, 1]``, in the observations' dtype), and, with
-            ``mark_expert_like``, the expert-like rows marked under ``"expert_like"``.
-        weights: the stored weights (``[N, 1]``): shaped, self-normalised.
-        raw: ŵ before any shaping (``[N, 1]``).
-        verdict: the fitter's verdict on ``raw`` (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`) for a
-            learned ŵ, else ``None``.
-        expert_like: the row mask of the expert-like episodes (:func:`expert_like_figures`), where asked for.
-        figures: the stored weights' figures (:func:`~torchrl_wbrm.evaluation.ratio_error`) and the expert-like
-            episodes' (:func:`expert_like_figures`).
-    """
+    """What :meth:`Weighting.over` hands to stage 2: the ``data`` given, with the ``weights`` stored ([N, 1], shaped,
+    self-normalised; ``"expert_like"`` marked where asked), ŵ before any shaping (``raw``), the fitter's ``verdict``
+    on it (:meth:`~torchrl_wbrm.ratio.DensityRatioFitter.verdict`; ``None`` unless learned), the ``expert_like`` row
+    mask (:func:`expert_like_figures`, where asked) and the ``figures`` of the stored weights
+    (:func:`~torchrl_wbrm.evaluation.ratio_error`) and of the expert-like episodes."""
 
     data: TensorDictBase
     weights: torch.Tensor

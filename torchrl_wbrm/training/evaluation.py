@@ -15,19 +15,9 @@ __all__ = ["RunEvaluation"]
 
 
 class RunEvaluation:
-    """The evaluations of one :class:`~torchrl_wbrm.training.trainer.WBRMTrainer` run.
-
-    Args:
-        cfg: the run's config.
-        task: its :class:`~torchrl_wbrm.tasks.Task` (its evaluator, its return quantity).
-        algo: its :class:`~torchrl_wbrm.algos.Algo` (the evaluated ``policy``, ``q_value``, ``bellman_loss``).
-        train: D's training episodes.
-        holdout: D's held-out episodes.
-        device: where the networks run.
-
-    Keyword Args:
-        build: build the task's evaluator (``False``: no evaluation env or simulation; only the figures from D).
-    """
+    """The evaluations of one run of the config ``cfg``: its ``task``'s evaluator (``build=False``: none, no
+    evaluation env or simulation, only the figures from D), its ``algo``'s ``policy``, ``q_value`` and
+    ``bellman_loss``, D's ``train`` and ``holdout`` episodes, the networks' ``device``."""
 
     def __init__(self, cfg, task, algo, train, holdout, device, *, build: bool = True):
         self.cfg, self.task, self.algo, self.train, self.holdout, self.device = cfg, task, algo, train, holdout, device
@@ -37,8 +27,7 @@ class RunEvaluation:
 
     @torch.no_grad()
     def ratio_figures(self, network) -> dict:
-        """The fitted ``network``'s ŵ against the exact ratio on the evaluation's behaviour samples (empty where
-        either is missing)."""
+        """``network``'s ŵ against the exact ratio on the evaluation's behaviour samples (where both exist)."""
         if self.true_ratio is None or network is None:
             return {}
         b = self.eval_samples["behaviour"].to(self.device)
@@ -102,11 +91,9 @@ class RunEvaluation:
         return figures
 
     def offline_value(self, weights, weighting, steps: int | None = None) -> tuple[dict, dict]:
-        """The current actor's value from D's training episodes alone, without the environment
-        (:func:`~torchrl_wbrm.training.offline_value.offline_value_figures`: FQE, and where stage 2 read ``weights``,
-        FQE weighted as ``eval.offline_value_weights`` says: ``"ratio"``, ``weighting``'s ŵ before any shaping,
-        self-normalised): ``(final figures, record)``. ``steps``: FQE's steps (default
-        ``eval.offline_value_steps``). Runs on a forked generator: training draws what it would without it."""
+        """:meth:`WBRMTrainer.offline_value <torchrl_wbrm.training.trainer.WBRMTrainer.offline_value>`: where stage 2
+        read ``weights``, FQE weighted by them, or with ``eval.offline_value_weights=ratio`` by ``weighting``'s ŵ
+        before any shaping, self-normalised."""
         ec = self.cfg.eval
         if weights is not None and ec.offline_value_weights == "ratio":
             w = weighting.raw(self.train).reshape(-1, 1).double()
@@ -124,5 +111,6 @@ class RunEvaluation:
         for an algo without one, or trained on S^e alone)."""
         if self.algo.q_value is None or self.algo.data == "expert":
             return None
-        total = sum(float(self.algo.q_value(rows.to(self.device))[0].double().sum()) for rows in self.train.split(chunk))
+        q_value = self.algo.q_value
+        total = sum(float(q_value(rows.to(self.device))[0].double().sum()) for rows in self.train.split(chunk))
         return total / self.train.shape[0]

@@ -1,7 +1,6 @@
-"""One run's parts, built from its prepared config (in this order, the order a run draws its random numbers): D, S^b,
-S^e and D's split (:func:`load_run_data`), stage 1's fitter (:func:`make_ratio_fitter`), stage 2's algo and its
-learning-rate schedules (:func:`make_algo`), and the refusal of a setting these parts cannot carry out
-(:func:`check_d_settings`). :class:`~torchrl_wbrm.training.trainer.WBRMTrainer` builds a run from them.
+"""One run's parts, built from its prepared config in the order a run draws its random numbers: D, S^b, S^e and D's
+split (:func:`load_run_data`), stage 1's fitter (:func:`make_ratio_fitter`), stage 2's algo and its learning-rate
+schedules (:func:`make_algo`), and the refusal of a setting these parts cannot carry out (:func:`check_d_settings`).
 """
 from __future__ import annotations
 
@@ -29,31 +28,20 @@ __all__ = ["RunData", "check_d_settings", "load_run_data", "make_algo", "make_ra
 
 @dataclass
 class RunData:
-    """One run's data and the figures its task and D set.
+    """One run's data, D's split and the figures its task and D set (:func:`load_run_data`)."""
 
-    Attributes:
-        datasets: D, S^b and S^e (:class:`~torchrl_wbrm.data.OfflineDatasets`).
-        train: D's training episodes (stage 2's rows).
-        holdout: D's held-out episodes (``q.holdout_fraction`` of them, drawn with ``seed + 23``).
-        action_spec: the task's action spec.
-        gamma: the task's γ for ``q.gamma``.
-        q_bound: Q's scale, from D's largest |reward| and γ (:class:`~torchrl_wbrm.training.stops.QBound`).
-        fingerprint: the SHA-256 of every tensor of D, S^b and S^e (a resume on different data is refused).
-        seconds: the time taken to make or read the data, the task's checks' read of them included.
-    """
-
-    datasets: OfflineDatasets
-    train: TensorDictBase
-    holdout: TensorDictBase
-    action_spec: object
-    gamma: float
-    q_bound: QBound
-    fingerprint: dict
-    seconds: float
+    datasets: OfflineDatasets  # D, S^b and S^e
+    train: TensorDictBase  # D's training episodes (stage 2's rows)
+    holdout: TensorDictBase  # D's held-out episodes (q.holdout_fraction of them, drawn with seed + 23)
+    action_spec: object  # the task's
+    gamma: float  # the task's γ for q.gamma
+    q_bound: QBound  # Q's scale, from D's largest |reward| and γ
+    fingerprint: str  # the SHA-256 of every tensor of D, S^b and S^e: a resume on other data is refused
+    seconds: float  # making or reading the data, the task's checks' read of them included
 
 
 def load_run_data(cfg, task) -> RunData:
-    """The run's data: made by ``task`` (or read from ``cfg.data_cache``), attached to it, and D split by episode."""
+    """The run's data: made by ``task`` (or read from ``cfg.data_cache``), attached to it, D split by episode."""
     t0 = time.perf_counter()
     if cfg.data_cache:
         datasets = cached_offline_datasets(cfg.env, seed=cfg.seed, cache_dir=cfg.data_cache)
@@ -70,9 +58,8 @@ def load_run_data(cfg, task) -> RunData:
 
 
 def make_ratio_fitter(cfg, data: RunData, device) -> DensityRatioFitter | None:
-    """Stage 1: :mod:`torchrl_wbrm.ratio`'s fitter of the ``ratio`` settings on S^b and S^e (its held-out split drawn
-    with ``seed + 17``), or ``None`` where the run fits no ratio (``ratio.source`` other than ``learned``, or an algo
-    that reads none)."""
+    """Stage 1: :mod:`torchrl_wbrm.ratio`'s fitter of the ``ratio`` settings on S^b and S^e (held-out split drawn with
+    ``seed + 17``); ``None`` where the run fits no ratio (``ratio.source`` not ``learned``, or an algo reading none)."""
     rc = cfg.ratio
     if rc.source != "learned" or not get_algo(cfg.algo).fits_ratio_for(cfg):
         return None
@@ -117,7 +104,7 @@ def step_schedulers(schedulers: dict) -> None:
     its optimiser yet at step 1: torch's warning about that order is expected and silenced)."""
     if not schedulers:
         return
-    if all(getattr(scheduler, "_step_count", 0) > 1 for scheduler in schedulers.values()):
+    if all(scheduler.last_epoch > 0 for scheduler in schedulers.values()):  # each stepped once already
         for scheduler in schedulers.values():  # torch warns only on a schedule's first step: no filter to set up
             scheduler.step()
         return

@@ -148,8 +148,7 @@ class WBRMTrainer:
         if self.cfg.threads:
             torch.set_num_threads(self.cfg.threads)
         set_seed(self.cfg.seed)
-        self.history: list[dict] = []
-        self.state = {"stage": "ratio", "step": 0}
+        self.history, self.state = [], {"stage": "ratio", "step": 0}
         self._setup(evaluation)
         if resume:
             self._load_checkpoint()
@@ -161,9 +160,8 @@ class WBRMTrainer:
 
     # ------------------------------------------------------------------ setup
     def _setup(self, evaluation: bool) -> None:
-        """The run's parts (:mod:`torchrl_wbrm.training.parts`, built in the order they draw random numbers): its data,
-        stage 1's fitter, stage 2's algo and the settings' checks on them; then its evaluations (the task's evaluator
-        where ``evaluation``) and where its ŵ comes from."""
+        """The run's parts (:mod:`torchrl_wbrm.training.parts`: data, stage 1's fitter, stage 2's algo, the settings'
+        checks), its evaluations (the task's evaluator where ``evaluation``) and where its ŵ comes from."""
         data = load_run_data(self.cfg, self.task)
         self.datasets, self.q_train_data, self.q_holdout = data.datasets, data.train, data.holdout
         self.action_spec, self.gamma, self.q_bound = data.action_spec, data.gamma, data.q_bound
@@ -280,9 +278,6 @@ class WBRMTrainer:
                     self.logger.log_scalar(k, v, step=step)
 
     # ------------------------------------------------------------------ stage 1
-    def _ratio_step(self, step: int) -> dict:
-        return self.ratio_fitter.step()
-
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
         result = self.ratio_fitter.evaluate(step)
@@ -292,8 +287,7 @@ class WBRMTrainer:
         return result["stop"]
 
     def _record(self, record: dict, what: str, prefix: str, checked: dict) -> None:
-        """An evaluation's ``record`` into the history; a non-finite figure of ``checked`` stops the run (naming
-        ``what``), else the record's floats are logged under ``prefix``."""
+        """An evaluation's ``record`` into the history; a non-finite ``checked`` figure stops the run, else logged."""
         self.history.append(record)
         bad = first_non_finite(checked)
         if bad is not None:
@@ -313,8 +307,7 @@ class WBRMTrainer:
         """Stage 1's hand-over in one call into :mod:`torchrl_wbrm.ratio` (ŵ over D's training rows, stored there,
         the fitter's verdict, D's expert-like episodes where a setting reads them, the figures), then stage 2's
         buffer of those rows and the ``q.select`` criterion on them."""
-        self.q_train_weights = self.ratio_check = self.selection = None  # q_train_weights None: ŵ ≡ 1
-        self.weight_stats = {}
+        self.q_train_weights, self.ratio_check, self.selection, self.weight_stats = None, None, None, {}  # ŵ ≡ 1
         if self.algo.data == "expert":
             self.q_buffer = make_replay_buffer(self.datasets.expert_samples[:], batch_size=self.cfg.q.batch_size)
             return
@@ -402,8 +395,8 @@ class WBRMTrainer:
     def _run(self, *, until: int | None) -> dict | None:
         if self.state["stage"] == "ratio":
             if self.ratio_fitter is not None:
-                self._run_stage("ratio", self.cfg.ratio.steps, self._ratio_step, eval_every=self.cfg.ratio.eval_every,
-                                eval_fn=self._ratio_eval)
+                self._run_stage("ratio", self.cfg.ratio.steps, lambda step: self.ratio_fitter.step(),
+                                eval_every=self.cfg.ratio.eval_every, eval_fn=self._ratio_eval)
                 self.ratio_fitter.best_network()  # the best held-out state
             self.state = {"stage": "q", "step": 0}
             self._build_q_buffer()
@@ -427,8 +420,7 @@ class WBRMTrainer:
         return self.results()
 
     def _diverged_results(self, err: TrainingDiverged) -> dict:
-        """``results.json`` of a run stopped by divergence (:func:`~torchrl_wbrm.training.run_results.diverged_results`),
-        written with the history."""
+        """A diverged run's ``results.json`` (:func:`~torchrl_wbrm.training.run_results.diverged_results`), history."""
         results = diverged_results(
             self.cfg, self.history, err, data_seconds=self.data_seconds, config=self.config_record(),
             checkpoint_stage=None if self._checkpoint_state is None else self._checkpoint_state["stage"])
@@ -441,11 +433,11 @@ class WBRMTrainer:
         history, then the plots and the logger's summary."""
         offline_value = self.offline_value() if self.cfg.eval.offline_value else None  # FQE on D: no environment
         results = finished_results(
-            self.cfg, self.history, datasets=self.datasets, weights=self.weight_stats, ratio_source=self.weighting.source,
-            ratio_best=None if self.ratio_fitter is None else self.ratio_fitter.best,
-            ratio_check=getattr(self, "ratio_check", None),
+            self.cfg, self.history, datasets=self.datasets, weights=self.weight_stats, ratio_check=self.ratio_check,
+            ratio_source=self.weighting.source, ratio_best=getattr(self.ratio_fitter, "best", None),
             selection_figure=None if self.selection is None else self.selection.figure, offline_value=offline_value,
-            bound=self.q_bound, q_mean_data=self.evaluation.q_mean_over_d(), data_seconds=self.data_seconds, config=self.config_record())
+            bound=self.q_bound, q_mean_data=self.evaluation.q_mean_over_d(), data_seconds=self.data_seconds,
+            config=self.config_record())
         # the figures are on disk before any plot is drawn: a failing plot cannot lose them
         write_json(self.run_dir / RESULTS, results)
         write_json(self.run_dir / HISTORY, self.history)
@@ -477,7 +469,7 @@ class WBRMTrainer:
         """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
         the checkpoint on disk is always the last finite one."""
         path = self.run_dir / CHECKPOINT
-        bad = non_finite_parameter(self.q_loss, self.ratio_fitter.loss_module if self.ratio_fitter is not None else None)
+        bad = non_finite_parameter(self.q_loss, None if self.ratio_fitter is None else self.ratio_fitter.loss_module)
         if bad is not None:
             raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
         state = self.state_dict()
