@@ -80,12 +80,12 @@ def test_the_uniform_reference_is_the_loss_of_w_equal_to_one(options):
 
 
 def test_the_run_is_flagged_in_results_and_console_when_stage_1_hands_on_a_worse_fit(tmp_path, monkeypatch):
-    import torchrl_wbrm.training.trainer as trainer_module
+    import torchrl_wbrm.training.parts as parts
 
     def constant_two(*args, **kwargs):
         return _make_constant(DensityRatioNetwork(*args, **kwargs), 2.0)
 
-    monkeypatch.setattr(trainer_module, "DensityRatioNetwork", constant_two)
+    monkeypatch.setattr(parts, "DensityRatioNetwork", constant_two)
     # a learning rate too small to move it (Adam's steps are about lr): the fitter hands on the constant 2
     trainer = WBRMTrainer(tiny_lqr_config(ratio={"lr": 1e-9}), tmp_path, progress=False)
     results = trainer.run()

@@ -4,9 +4,9 @@ Set-up builds the run's parts from its config (:mod:`torchrl_wbrm.training.parts
 :class:`~torchrl_wbrm.ratio.DensityRatioFitter` (run only for an algo registered with ``fits_ratio`` and a learned
 ratio), stage 2's algo (:mod:`torchrl_wbrm.algos`: every baseline is a configuration of this trainer, ``algo=...``)
 and the run's evaluations (:mod:`torchrl_wbrm.training.evaluation`); everything env-specific is the env's
-:class:`~torchrl_wbrm.tasks.Task`. Between the stages, :meth:`~torchrl_wbrm.ratio.Weighting.over` computes ŵ once over
-D and stores it in stage 2's buffer. Both stages run through one loop (:meth:`WBRMTrainer._run_stage`): tqdm
-progress, logging, evaluation, checkpoints (:mod:`torchrl_wbrm.training.checkpoint`'s format; a resume ends
+:class:`~torchrl_wbrm.tasks.Task`. Between the stages, :meth:`~torchrl_wbrm.ratio.weighting.Weighting.over`
+computes ŵ once over D and stores it in stage 2's buffer. Both stages run through one loop (:meth:`_run_stage`):
+tqdm progress, logging, evaluation, checkpoints (:mod:`torchrl_wbrm.training.checkpoint`'s format; a resume ends
 bit-identical to an uninterrupted run) and the stops (:mod:`torchrl_wbrm.training.stops`). ``q.select`` is
 :mod:`torchrl_wbrm.training.selection`'s, ``results.json`` :mod:`torchrl_wbrm.training.run_results`'.
 """
@@ -296,7 +296,7 @@ class WBRMTrainer:
 
     # ------------------------------------------------------------------ stage 1's hand-over to stage 2
     def _weights_over(self, data: TensorDictBase, what: str, **kwargs) -> WeightsOver:
-        """The run's :meth:`~torchrl_wbrm.ratio.Weighting.over`; non-finite weights stop the run, naming ``what``."""
+        """The run's ``weighting.over(data, **kwargs)``; non-finite weights stop the run, naming ``what``."""
         try:
             return self.weighting.over(data, **kwargs)
         except NonFiniteWeightsError as err:
