@@ -219,16 +219,15 @@ def adopt(records: list[dict]) -> tuple[str, str, list[str]] | None:
     return chosen[4], chosen[5], lines
 
 
+#: the figures of every LQR table: column -> dotted path in a run's results
+METRICS = {"paired regret": "final.regret", "Q̂ error / spread (expert)": "final.q_error_expert",
+           "Q̂ bias (expert)": "final.q_bias_expert", "held-out Bellman residual": "final.held_out_bellman_residual"}
+
+
 def tables(out: Path) -> str:
     from torchrl_wbrm.training.reporting import results_table
 
-    records = _records(out)
-    metrics = {
-        "paired regret": "final.regret",
-        "Q̂ error / spread (expert)": "final.q_error_expert",
-        "Q̂ bias (expert)": "final.q_bias_expert",
-        "held-out Bellman residual": "final.held_out_bellman_residual",
-    }
+    records, metrics = _records(out), METRICS
     parts = []
     defaults = [r for r in records if r["study"]["block"] == DEFAULT]
     if defaults:
