@@ -85,7 +85,7 @@ def test_weighted_bellman_fast_path_equals_the_tensordict_path(kwargs):
 
 
 def test_value_loss_input_checks_in_one_reduction_raise_what_the_separate_checks_raise():
-    from torchrl_wbrm.objectives._utils import NonFiniteError
+    from torchrl_wbrm.objectives import NonFiniteError
 
     fast, _ = _pair()
     data = _data()
@@ -325,8 +325,8 @@ def test_trainer_divergence_check_on_cpu_is_first_non_finite(tmp_path):
     from torchrl_wbrm.training import WBRMTrainer
 
     trainer = WBRMTrainer(tiny_config(), tmp_path / "run", progress=False)
-    assert trainer._non_finite_figure({"loss": torch.tensor(1.0)}, read=False) is None
-    name, value = trainer._non_finite_figure({"a": torch.tensor(1.0), "loss": torch.tensor(float("inf"))}, read=False)
+    assert trainer.finite_watch({"loss": torch.tensor(1.0)}, read=False) is None
+    name, value = trainer.finite_watch({"a": torch.tensor(1.0), "loss": torch.tensor(float("inf"))}, read=False)
     assert name == "loss" and value == float("inf")
 
 
@@ -343,7 +343,7 @@ def _sequential_pair():
 
 @pytest.mark.parametrize("path", ["tensor", "tensordict", "sequential"])
 def test_priority_weight_and_input_checks_hold_on_every_network_call(path):
-    from torchrl_wbrm.objectives._utils import NonFiniteError
+    from torchrl_wbrm.objectives import NonFiniteError
 
     if path == "sequential":
         loss = _sequential_pair()

@@ -104,10 +104,10 @@ def test_trainer_divergence_check_on_cuda_reads_the_device_only_on_check_steps(t
     good = {"loss": torch.tensor(1.0, device="cuda")}
     bad = {"loss": torch.tensor(float("nan"), device="cuda")}
     with _no_sync():
-        assert trainer._non_finite_figure(good, read=False) is None
-        assert trainer._non_finite_figure(bad, read=False) is None  # not read yet
-    assert trainer._non_finite_figure(good, read=True) is not None  # the window held a NaN
-    assert trainer._non_finite_figure(good, read=True) is None
+        assert trainer.finite_watch(good, read=False) is None
+        assert trainer.finite_watch(bad, read=False) is None  # not read yet
+    assert trainer.finite_watch(good, read=True) is not None  # the window held a NaN
+    assert trainer.finite_watch(good, read=True) is None
 
 
 

@@ -4,6 +4,7 @@ the functions of :mod:`torchrl_wbrm.objectives.functional`."""
 from __future__ import annotations
 
 from torchrl_wbrm.objectives import functional
+from torchrl_wbrm.objectives._utils import NonFiniteError
 from torchrl_wbrm.objectives.functional import (
     RESIDUALS,
     average_bellman_residual,
@@ -20,6 +21,7 @@ from torchrl_wbrm.objectives.weighted_loss import NATIVE_PRIORITY_WEIGHT_LOSSES,
 
 __all__ = [
     "functional",
+    "NonFiniteError",
     "FQELoss",
     "ADVERSARIES",
     "MABOLoss",

@@ -93,19 +93,6 @@ def check_finite(value: torch.Tensor, key: NestedKey) -> None:
         raise NonFiniteError(f"Entry {key!r} holds {bad} non-finite value(s) (NaN or inf) of {value.numel()}.", key)
 
 
-def check_all_finite(entries: dict) -> None:
-    """:func:`check_finite` on several entries with one host sync (the max of |x| is NaN/inf iff an entry is); the
-    ValueError names the first offending key."""
-    floats = {k: v for k, v in entries.items() if v.is_floating_point() and v.device.type == "cpu" and v.numel()}
-    if not floats:
-        return
-    peaks = torch.stack([v.detach().abs().amax().to(torch.float64) for v in floats.values()])
-    if bool(torch.isfinite(peaks).all()):
-        return
-    for key, value in floats.items():
-        check_finite(value, key)
-
-
 def as_bool_flag(value: torch.Tensor, key: NestedKey, *, check: bool = True) -> torch.Tensor:
     """An episode-end flag as a bool tensor: bool as it is, any integer dtype holding only 0 and 1 converted
     (``~`` on an int64 1 is −2, on a uint8 0 is 255: torchrl's estimators need bools); a float flag or an integer

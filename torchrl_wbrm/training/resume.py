@@ -13,7 +13,8 @@ from torchrl_wbrm.keys import CHECKPOINT, RESULTS
 from torchrl_wbrm.training.checkpoint import read_checkpoint
 from torchrl_wbrm.training.config import config_as_dict, config_schema
 from torchrl_wbrm.training.validation import check_writable_folder
-from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, holds_run, refuse_links
+from torchrl_wbrm.training.rundir import (RunDirClaim, check_run_dir, claim_run_dir, given_claim, holds_run,
+                                          refuse_links)
 
 __all__ = ["CONFIG_GROUPS", "CONTINUABLE_KEYS", "CONTINUABLE_PREFIXES", "REUSABLE_KEYS", "REUSABLE_PREFIXES",
            "changed_keys", "check_finished_config", "check_resume_config", "check_run_record", "check_run_request",
@@ -257,8 +258,10 @@ def check_run_request(cfg, run_dir: Path, *, resume: bool, claim: RunDirClaim | 
     its config compared (:func:`check_resume_config`), or a new run's directory checked for an earlier run
     (:func:`check_run_dir`, nothing removed yet); a directory where something the run writes into is a symbolic
     link is refused (:func:`~torchrl_wbrm.training.rundir.refuse_links`). Returns the claim (released again if the run is refused) and the
-    checkpoint read (``None`` for a new run)."""
+    checkpoint read (``None`` for a new run). A given ``claim`` must be of ``run_dir``
+    (:func:`~torchrl_wbrm.training.rundir.given_claim`)."""
     run_dir = Path(run_dir)
+    claim = given_claim(claim, run_dir)
     path = run_dir / CHECKPOINT
     seeds = getattr(cfg, "seeds", None)
     if resume and seeds:  # a multi-seed run: its seeds' folders are checked by their own trainers

@@ -25,7 +25,7 @@ except ImportError:  # pragma: no cover - Windows
 from torchrl_wbrm.keys import CHECKPOINT, HISTORY, RESULTS
 
 __all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim", "RunDirInUse", "check_run_dir",
-           "claim_run_dir", "clear_run_outputs", "holds_run", "linked_outputs", "refuse_links",
+           "claim_run_dir", "clear_run_outputs", "given_claim", "holds_run", "linked_outputs", "refuse_links",
            "remove_empty", "unique_dir"]
 
 
@@ -229,6 +229,16 @@ def claim_run_dir(run_dir: str | os.PathLike) -> RunDirClaim:
             ) from err
         return RunDirClaim(path, -1)  # a file system without flock: unlocked, as before
     return RunDirClaim(path, fd)
+
+
+def given_claim(claim: RunDirClaim | None, run_dir: str | os.PathLike) -> RunDirClaim | None:
+    """``claim`` where it is a held claim of ``run_dir`` (``None``: none given or no longer held); a claim of another
+    directory is refused."""
+    if claim is None or not claim.held:
+        return None
+    if os.path.realpath(claim.path) != os.path.realpath(run_dir):
+        raise ValueError(f"claim= holds {claim.path}, not this run's directory {run_dir}.")
+    return claim
 
 
 def unique_dir(path: Path) -> Path:

@@ -14,8 +14,8 @@ import torch
 
 from torchrl_wbrm.keys import CHECKPOINT
 
-__all__ = ["RECIPE_COMMAND", "QBound", "RunInterrupted", "resume_command", "StopNow", "StopSignals", "TrainingDiverged", "first_non_finite",
-           "non_finite_parameter"]
+__all__ = ["RECIPE_COMMAND", "FiniteWatch", "QBound", "RunInterrupted", "resume_command", "StopNow", "StopSignals",
+           "TrainingDiverged", "first_non_finite", "non_finite_parameter"]
 
 
 class TrainingDiverged(RuntimeError):
@@ -149,6 +149,32 @@ def first_non_finite(figures: dict) -> tuple[str, float] | None:
         return None
     i = int((~finite).nonzero()[0])
     return scalars[i][0], float(stacked[i])
+
+
+class FiniteWatch:
+    """The divergence check of a stage's step figures on ``device``: :func:`first_non_finite` on CPU (a host read
+    costs nothing there). On an accelerator a device-side "all finite so far" flag is accumulated without a host sync
+    and read (one sync) only when ``read`` (log, evaluation and checkpoint steps, the last step, a stop signal), so a
+    divergence is caught at the next such step, before anything after it is logged or checkpointed; it names that
+    step's first non-finite figure (a NaN persists), or the window's if they are finite again."""
+
+    def __init__(self, device) -> None:
+        self.device, self.flag = torch.device(device), None
+
+    def __call__(self, figures: dict, *, read: bool) -> tuple[str, float] | None:
+        if self.device.type == "cpu":
+            return first_non_finite(figures)
+        values = [v.detach().reshape(()).float() for v in figures.values()
+                  if isinstance(v, torch.Tensor) and v.numel() == 1 and (v.is_floating_point() or v.is_complex())]
+        if values:
+            ok = torch.isfinite(torch.stack(values)).all()
+            self.flag = ok if self.flag is None else self.flag & ok
+        if not read or self.flag is None:
+            return None
+        flag, self.flag = self.flag, None
+        if bool(flag):
+            return None
+        return first_non_finite(figures) or ("a figure of the steps since the last check", float("nan"))
 
 
 def non_finite_parameter(*modules) -> str | None:

@@ -34,7 +34,7 @@ from torchrl_wbrm.training.checkpoint import (checkpoint_state, restore_training
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
 from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
                                           truncate_csv_logs)
-from torchrl_wbrm.objectives._utils import NonFiniteError
+from torchrl_wbrm.objectives import NonFiniteError
 from torchrl_wbrm.training.evaluation import RunEvaluation
 from torchrl_wbrm.training.parts import check_d_settings, load_run_data, make_algo, make_ratio_fitter, step_schedulers
 from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion
@@ -42,8 +42,8 @@ from torchrl_wbrm.training.results import pause_for_test, write_json
 from torchrl_wbrm.training.run_results import diverged_results, finished_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, unique_dir
-from torchrl_wbrm.training.stops import (RunInterrupted, StopNow, StopSignals, TrainingDiverged, first_non_finite,
-                                         non_finite_parameter)
+from torchrl_wbrm.training.stops import (FiniteWatch, RunInterrupted, StopNow, StopSignals, TrainingDiverged,
+                                         first_non_finite, non_finite_parameter)
 
 __all__ = ["WBRMTrainer", "default_run_dir"]
 
@@ -85,7 +85,6 @@ class WBRMTrainer:
 
     def __init__(self, cfg, run_dir: str | os.PathLike | None = None, *, logger="config", resume: bool = False,
                  progress: bool = True, evaluation: bool = True, claim: RunDirClaim | None = None):
-        self._claim: RunDirClaim | None = None
         # merged, resolved and validated once (or by the recipe's Hydra callback, which hands both on); a task holds
         # one run's data, so a prepared task already used by another trainer is built anew
         prepared = cfg if isinstance(cfg, PreparedConfig) else prepare_config(cfg)
@@ -108,31 +107,20 @@ class WBRMTrainer:
         if not resume:
             self.run_dir.mkdir(parents=True, exist_ok=True)
         self._claim, self._resume_sd = check_run_request(self.cfg, self.run_dir, resume=resume,
-                                                         claim=self._given_claim(claim), task=self.task)
+                                                         claim=claim, task=self.task)
         try:
             self._init(resume, logger, progress, evaluation)
         except BaseException:
             self.release()
             raise
 
-    def _given_claim(self, claim: RunDirClaim | None) -> RunDirClaim | None:
-        """``claim`` where it is a held claim of this run's directory (``None``: none given or no longer held); a claim
-        of another directory is refused."""
-        if claim is None or not claim.held:
-            return None
-        if os.path.realpath(claim.path) != os.path.realpath(self.run_dir):
-            raise ValueError(f"claim= holds {claim.path}, not this run's directory {self.run_dir}.")
-        return claim
-
     def release(self) -> None:
         """Release the claim on the run directory (:meth:`run` takes it again)."""
-        if self._claim is not None:
-            self._claim.release()
-            self._claim = None
+        claim, self._claim = self.__dict__.get("_claim"), None
+        if claim is not None:
+            claim.release()
 
-    def __del__(self) -> None:
-        if self.__dict__.get("_claim") is not None:
-            self.release()
+    __del__ = release
 
     def _init(self, resume: bool, logger, progress: bool, evaluation: bool) -> None:
         if resume:
@@ -144,6 +132,7 @@ class WBRMTrainer:
         self.logger = None if isinstance(logger, str) else logger
         self.progress = progress
         self.device = torch.device(self.cfg.device)
+        self.finite_watch = FiniteWatch(self.device)  # the divergence check of each step's figures
         configure_console(self.cfg.verbose)  # library INFO chatter (torchrl's storage lines) only with verbose=true
         if self.cfg.threads:
             torch.set_num_threads(self.cfg.threads)
@@ -212,7 +201,7 @@ class WBRMTrainer:
                 read = (step % log_every == 0 or step == stop or step % eval_every == 0 or step == total_steps
                         or bool(ckpt_every and step % ckpt_every == 0)
                         or (self._stop is not None and self._stop.received is not None))
-                bad = self._non_finite_figure(figures, read=read)
+                bad = self.finite_watch(figures, read=read)
                 if bad is not None:  # nothing of this step is checkpointed
                     raise TrainingDiverged(name, step, bad[0], bad[1])
                 self.state["step"] = step
@@ -248,28 +237,6 @@ class WBRMTrainer:
             self.state["eval_pending"] = step
             self.save_checkpoint()
             raise RunInterrupted(err.signum, name, step, self.run_dir, during="evaluation") from None
-
-    def _non_finite_figure(self, figures: dict, *, read: bool) -> tuple[str, float] | None:
-        """The divergence check of a step's figures: :func:`first_non_finite` on CPU (a host read costs nothing
-        there). On an accelerator a device-side "all finite so far" flag is accumulated without a host sync and read
-        (one sync) only when ``read`` (log, evaluation and checkpoint steps, the last step, a stop signal), so a
-        divergence is caught at the next such step, before anything after it is logged or checkpointed; it names
-        that step's first non-finite figure (a NaN persists), or the window's if they are finite again."""
-        if self.device.type == "cpu":
-            return first_non_finite(figures)
-        values = [v.detach().reshape(()).float() for v in figures.values()
-                  if isinstance(v, torch.Tensor) and v.numel() == 1 and (v.is_floating_point() or v.is_complex())]
-        flag = self.__dict__.get("_finite_flag")
-        if values:
-            ok = torch.isfinite(torch.stack(values)).all()
-            flag = ok if flag is None else flag & ok
-        self._finite_flag = flag
-        if not read or flag is None:
-            return None
-        self._finite_flag = None
-        if bool(flag):
-            return None
-        return first_non_finite(figures) or ("a figure of the steps since the last check", float("nan"))
 
     def _log(self, scalars: dict[str, float], step: int) -> None:
         if self.logger is not None:
