@@ -4,7 +4,8 @@ Each seed is a :class:`~torchrl_wbrm.training.trainer.WBRMTrainer` of its own (`
 ``seed=s``), run by the trainer's own loop (:meth:`~torchrl_wbrm.training.trainer.WBRMTrainer.run`) one seed after
 another: its data, its networks' initialisation, its batches, its evaluations, its checkpoints and its results are
 those of a separate run with that seed, bit for bit. What the seeds share is the process: its start-up and imports
-are paid once.
+are paid once. The seeds are not stepped together (their updates under ``torch.vmap`` over stacked parameters):
+measured, that saves too little of a run's wall time for a second way of stepping them (:doc:`/performance`).
 
 A multi-seed run is resumed (``resume=<run dir>``, :func:`run_seeds`' ``resume``) seed by seed: finished seeds are
 kept, a seed with a checkpoint continues from it, the others run anew. A seed that diverges is recorded as diverged
