@@ -20,9 +20,10 @@ import numpy as np
 import torch
 
 from torchrl_wbrm.training.results import atomic_write
+from torchrl_wbrm.training.stops import TrainingDiverged, non_finite_parameter
 
 __all__ = ["CHECKPOINT_KEYS", "checkpoint_state", "data_fingerprint", "get_rng_state", "read_checkpoint",
-           "restore_training_state", "same_data", "set_rng_state", "set_seed", "write_checkpoint"]
+           "restore_training_state", "set_rng_state", "set_seed", "write_checkpoint"]
 
 
 #: Keys of a checkpoint written by :func:`checkpoint_state`.
@@ -91,14 +92,29 @@ def checkpoint_state(*, state: dict, history: list, q_loss, optimisers: dict, sc
     return sd
 
 
-def write_checkpoint(path: Path, sd: dict) -> None:
-    """Write ``sd`` to ``path`` atomically: a fresh temporary file beside it, fsynced, then renamed over it."""
+def write_checkpoint(path: Path, sd: dict, *, modules=(), claim=None) -> None:
+    """Write ``sd`` to ``path`` atomically: a fresh temporary file beside it, fsynced, then renamed over it. Refused
+    (:class:`~torchrl_wbrm.training.stops.TrainingDiverged`, at ``sd``'s stage and step) where a parameter of
+    ``modules`` (stage 2's loss, stage 1's fitter's) is not finite, so the checkpoint on disk is always the last finite
+    one; ``claim``: the run directory's claim, checked present (nothing is written into a directory made anew)."""
+    bad = non_finite_parameter(*modules)
+    if bad is not None:
+        raise TrainingDiverged(sd["state"]["stage"], sd["state"]["step"], f"parameter {bad}", float("nan"))
+    if claim is not None:
+        claim.check_present()
     atomic_write(path, lambda f: torch.save(sd, f), tmp=path.with_suffix(".tmp"))
 
 
-def restore_training_state(sd: dict, *, q_loss, optimisers: dict, schedulers: dict, ratio_fitter=None) -> None:
-    """Load a checkpoint's (:func:`read_checkpoint`) stage-2 loss, optimisers and schedules and stage 1's fitter into
-    the run's own; the random states are restored apart (:func:`set_rng_state`), once everything else is built."""
+def restore_training_state(sd: dict, path: Path, *, data_fingerprint: str, q_loss, optimisers: dict, schedulers: dict,
+                           ratio_fitter=None) -> None:
+    """Load a checkpoint's (``sd``, read by :func:`read_checkpoint` from ``path``) stage-2 loss, optimisers and
+    schedules and stage 1's fitter into the run's own; refused, naming ``path``, where its data are not the run's (its
+    ``data_fingerprint``, :func:`data_fingerprint`). The random states are restored apart (:func:`set_rng_state`),
+    once everything else is built."""
+    if sd["data_fingerprint"] != data_fingerprint:
+        raise ValueError(f"Cannot resume from {path}: its data differ from the data this config reads now (the "
+                         f"SHA-256 of every tensor of D, S^b and S^e differs: the dataset's files changed, or the "
+                         f"env or seed); a resume never mixes two datasets. Start a new run on these data.")
     q_loss.load_state_dict(sd["q_loss"])
     for name, optimiser in optimisers.items():
         optimiser.load_state_dict(sd["optimisers"][name])
@@ -197,7 +213,7 @@ def read_checkpoint(path: Path) -> dict:
     for key, kind in _CHECKPOINT_TYPES.items():
         if not isinstance(sd[key], kind):
             raise RuntimeError(f"Cannot resume: {path} is not a checkpoint this project wrote: its {key!r} is a "
-                               f"{type(sd[key]).__name__}, not a {' or '.join(k.__name__ for k in _as_tuple(kind))}.")
+                               f"{type(sd[key]).__name__}, not a {kind.__name__}.")
     state = sd["state"]
     if not (isinstance(state.get("stage"), str) and isinstance(state.get("step"), int)):
         raise RuntimeError(f"Cannot resume: {path} is not a checkpoint this project wrote: its 'state' is {state!r}, "
@@ -207,18 +223,14 @@ def read_checkpoint(path: Path) -> dict:
 
 #: the type of each entry of a checkpoint :func:`checkpoint_state` writes
 _CHECKPOINT_TYPES = {"state": dict, "history": list, "rng": dict, "q_loss": dict, "optimisers": dict,
-                     "schedulers": dict, "config": dict, "data_fingerprint": (str, int, float)}
-
-
-def _as_tuple(kind) -> tuple:
-    return kind if isinstance(kind, tuple) else (kind,)
+                     "schedulers": dict, "config": dict, "data_fingerprint": str}
 
 
 def data_fingerprint(datasets) -> str:
     """The SHA-256 of every tensor of a run's data (``D``, ``S^b`` and ``S^e`` of an
     :class:`~torchrl_wbrm.data.OfflineDatasets`): each entry's name, dtype, shape and bytes, in a fixed order. A
     checkpoint records it, and a resume on data that differ in any value (a reward changed in the dataset's files,
-    another env or seed) is refused (:func:`same_data`)."""
+    another env or seed) is refused (:func:`restore_training_state`)."""
     digest = hashlib.sha256()
     for part in ("transitions", "behaviour_samples", "expert_samples"):
         buffer = getattr(datasets, part, None)
@@ -231,15 +243,3 @@ def data_fingerprint(datasets) -> str:
             digest.update(f"{part}/{key}/{tensor.dtype}/{tuple(tensor.shape)}".encode())
             digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
     return digest.hexdigest()
-
-
-def same_data(saved, datasets, fingerprint: str | None = None) -> bool:
-    """Whether a checkpoint's ``data_fingerprint`` (``saved``) is that of ``datasets``: the SHA-256 of every tensor
-    (:func:`data_fingerprint`). A checkpoint of an older version recorded a float, the sum of D's first 100 rows'
-    observations and actions; it is compared by that rule (so an older run stays resumable). ``fingerprint``:
-    ``datasets``' own, when computed already."""
-    if isinstance(saved, str):
-        return saved == (fingerprint or data_fingerprint(datasets))
-    d = datasets.transitions[:]
-    legacy = float(d["observation"][:100].double().sum() + d["action"][:100].double().sum())
-    return isinstance(saved, (int, float)) and abs(saved - legacy) <= 1e-6

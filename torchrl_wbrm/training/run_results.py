@@ -6,12 +6,15 @@ figures, the weights, stage 1's outcome, the data, the selection, Q's scale and 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+from torchrl_wbrm.keys import HISTORY, RESULTS
+from torchrl_wbrm.training.logging import log_run_summary
 from torchrl_wbrm.training.reporting import below_behaviour, return_fell
-from torchrl_wbrm.training.results import json_safe
+from torchrl_wbrm.training.results import json_safe, write_json
 from torchrl_wbrm.training.selection import selection_record
 
-__all__ = ["diverged_results", "finished_results", "q_scale"]
+__all__ = ["diverged_results", "finished_results", "q_scale", "write_results"]
 
 
 def q_scale(final: dict, last_train: dict | None, bound, q_mean_data: float | None = None) -> dict:
@@ -104,3 +107,20 @@ def finished_results(cfg, history: list[dict], *, datasets, weights: dict, ratio
     if results["return_check"]["fell"]:
         results["flags"].append("return_fell")
     return json_safe(results)
+
+
+def write_results(run_dir: Path, results: dict, history: list[dict], *, plots: str | None = None,
+                  logger=None) -> dict:
+    """Write ``results`` (``results.json``) and ``history`` (``history.json``) into ``run_dir``, then, where ``plots``
+    (their title), the plots (:func:`~torchrl_wbrm.training.plots.plot_run`) and ``logger``'s summary (wandb: final
+    figures with CIs, plots, a results table): the figures are on disk before any plot is drawn, so a failing plot
+    cannot lose them. Returns ``results``."""
+    write_json(run_dir / RESULTS, results)
+    write_json(run_dir / HISTORY, history)
+    if plots is not None:
+        from torchrl_wbrm.training.plots import plot_run
+
+        plot_run(history, run_dir, title=plots, algo=results["algo"], data=results.get("data"))
+    if logger is not None:
+        log_run_summary(logger, results, run_dir)
+    return results

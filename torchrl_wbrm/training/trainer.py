@@ -26,24 +26,23 @@ from tqdm.auto import tqdm
 from torchrl_wbrm.data import make_replay_buffer
 from torchrl_wbrm.data.sampling import BufferBatches
 from torchrl_wbrm.tasks import Task, get_task
-from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, HELD_OUT_LOSS, HISTORY, RESULTS
+from torchrl_wbrm.keys import CHECKPOINT, DENSITY_RATIO, HELD_OUT_LOSS
 from torchrl_wbrm.modules.action_scaling import ActionScaling
-from torchrl_wbrm.ratio import NonFiniteWeightsError, Weighting, WeightsOver
-from torchrl_wbrm.training.checkpoint import (checkpoint_state, restore_training_state, same_data,
-                                              set_rng_state, set_seed, write_checkpoint)
-from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
-from torchrl_wbrm.training.logging import (configure_console, log_run_summary, make_logger, progress_postfix,
-                                          truncate_csv_logs)
 from torchrl_wbrm.objectives import NonFiniteError
+from torchrl_wbrm.ratio import NonFiniteWeightsError, Weighting, WeightsOver
+from torchrl_wbrm.training.checkpoint import (checkpoint_state, restore_training_state, set_rng_state, set_seed,
+                                              write_checkpoint)
+from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
+from torchrl_wbrm.training.logging import configure_console, make_logger, progress_postfix, truncate_csv_logs
 from torchrl_wbrm.training.evaluation import RunEvaluation
 from torchrl_wbrm.training.parts import check_d_settings, load_run_data, make_algo, make_ratio_fitter, step_schedulers
 from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion
-from torchrl_wbrm.training.results import pause_for_test, write_json
-from torchrl_wbrm.training.run_results import diverged_results, finished_results
+from torchrl_wbrm.training.results import pause_for_test
+from torchrl_wbrm.training.run_results import diverged_results, finished_results, write_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
 from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, unique_dir
 from torchrl_wbrm.training.stops import (FiniteWatch, RunInterrupted, StopNow, StopSignals, TrainingDiverged,
-                                         first_non_finite, non_finite_parameter)
+                                         first_non_finite)
 
 __all__ = ["WBRMTrainer", "default_run_dir"]
 
@@ -270,7 +269,7 @@ class WBRMTrainer:
             raise TrainingDiverged(what, 0, DENSITY_RATIO, err.value) from err
 
     @torch.no_grad()
-    def _build_q_buffer(self) -> None:
+    def _build_q_buffer(self, log: bool = True) -> None:
         """Stage 1's hand-over in one call into :mod:`torchrl_wbrm.ratio` (ŵ over D's training rows, stored there,
         the fitter's verdict, D's expert-like episodes where a setting reads them, the figures), then stage 2's
         buffer of those rows and the ``q.select`` criterion on them."""
@@ -298,7 +297,8 @@ class WBRMTrainer:
                 half_width=ActionScaling(self.action_spec).half_width, loss=self.algo.bellman_loss, gamma=self.gamma,
                 device=self.device))
         self.weight_stats = over.figures
-        self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+        if log:
+            self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     def offline_value(self, steps: int | None = None) -> tuple[dict, dict]:
         """The current actor's value from D's training episodes alone, without the environment
@@ -349,9 +349,12 @@ class WBRMTrainer:
         try:
             with StopSignals() as self._stop:
                 return self._run(until=until)
-        except TrainingDiverged as err:
-            err.checkpoint_step = None if self._checkpoint_state is None else self._checkpoint_state["step"]
-            return self._diverged_results(err)
+        except TrainingDiverged as err:  # results.json says where (run_results.diverged_results)
+            last = self._checkpoint_state or {}
+            err.checkpoint_step = last.get("step")
+            return write_results(self.run_dir, diverged_results(
+                self.cfg, self.history, err, checkpoint_stage=last.get("stage"), data_seconds=self.data_seconds,
+                config=self.config_record()), self.history)
         except StopNow as err:  # the re-evaluation of a finished run: its checkpoint is complete, nothing to write
             raise RunInterrupted(err.signum, self.state["stage"], self.state["step"], self.run_dir,
                                  during="evaluation") from None
@@ -386,15 +389,6 @@ class WBRMTrainer:
             self._q_eval(self.cfg.q.steps)
         return self.results()
 
-    def _diverged_results(self, err: TrainingDiverged) -> dict:
-        """A diverged run's ``results.json`` (:func:`~torchrl_wbrm.training.run_results.diverged_results`), history."""
-        results = diverged_results(
-            self.cfg, self.history, err, data_seconds=self.data_seconds, config=self.config_record(),
-            checkpoint_stage=None if self._checkpoint_state is None else self._checkpoint_state["stage"])
-        write_json(self.run_dir / RESULTS, results)
-        write_json(self.run_dir / HISTORY, self.history)
-        return results
-
     def results(self) -> dict:
         """The finished run's results (:func:`~torchrl_wbrm.training.run_results.finished_results`), written with the
         history, then the plots and the logger's summary."""
@@ -405,17 +399,8 @@ class WBRMTrainer:
             selection_figure=None if self.selection is None else self.selection.figure, offline_value=offline_value,
             bound=self.q_bound, q_mean_data=self.evaluation.q_mean_over_d(), data_seconds=self.data_seconds,
             config=self.config_record())
-        # the figures are on disk before any plot is drawn: a failing plot cannot lose them
-        write_json(self.run_dir / RESULTS, results)
-        write_json(self.run_dir / HISTORY, self.history)
-        if self.cfg.plots:
-            from torchrl_wbrm.training.plots import plot_run
-
-            plot_run(self.history, self.run_dir, title=f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}",
-                     algo=self.cfg.algo, data=results.get("data"))
-        if self.logger is not None:  # wandb: final figures with CIs in the summary, plots, a results table
-            log_run_summary(self.logger, results, self.run_dir)
-        return results
+        title = f"{self.cfg.algo}, {self.cfg.env.name}, seed {self.cfg.seed}" if self.cfg.plots else None
+        return write_results(self.run_dir, results, self.history, plots=title, logger=self.logger)
 
     # ------------------------------------------------------------------ checkpoints
     def config_record(self) -> dict:
@@ -433,38 +418,23 @@ class WBRMTrainer:
                                 ratio_fitter=self.ratio_fitter)
 
     def save_checkpoint(self) -> Path:
-        """Write ``checkpoint.pt`` atomically; refused (:class:`TrainingDiverged`) if a parameter is not finite, so
-        the checkpoint on disk is always the last finite one."""
-        path = self.run_dir / CHECKPOINT
-        bad = non_finite_parameter(self.q_loss, None if self.ratio_fitter is None else self.ratio_fitter.loss_module)
-        if bad is not None:
-            raise TrainingDiverged(self.state["stage"], self.state["step"], f"parameter {bad}", float("nan"))
-        state = self.state_dict()
-        if self._claim is not None:  # the directory this run claimed, not one made anew under its name
-            self._claim.check_present()
-        write_checkpoint(path, state)
+        """Write ``checkpoint.pt`` (:func:`~torchrl_wbrm.training.checkpoint.write_checkpoint`: atomically, refused
+        with :class:`TrainingDiverged` if a parameter is not finite, so the one on disk is always the last finite)."""
+        write_checkpoint(self.run_dir / CHECKPOINT, self.state_dict(), claim=self._claim,
+                         modules=(self.q_loss, getattr(self.ratio_fitter, "loss_module", None)))
         self._checkpoint_state = dict(self.state)
-        return path
+        return self.run_dir / CHECKPOINT
 
     def _load_checkpoint(self) -> None:
-        """Restore the checkpoint read (and whose config was checked) in ``__init__``."""
-        path = self.run_dir / CHECKPOINT
-        sd = self._resume_sd
-        if not same_data(sd["data_fingerprint"], self.datasets, self.data_fingerprint):
-            raise ValueError(f"Cannot resume from {path}: its data differ from the data this config reads now (the "
-                             f"SHA-256 of every tensor of D, S^b and S^e differs: the dataset's files changed, or the "
-                             f"env or seed); a resume never mixes two datasets. Start a new run on these data.")
+        """Restore the checkpoint read (and whose config was checked) in ``__init__``
+        (:func:`~torchrl_wbrm.training.checkpoint.restore_training_state`), stage 2's buffer, then the random states."""
+        sd, self._resume_sd = self._resume_sd, None
+        restore_training_state(sd, self.run_dir / CHECKPOINT, data_fingerprint=self.data_fingerprint, q_loss=self.q_loss,
+                               optimisers=self.optimisers, schedulers=self.schedulers, ratio_fitter=self.ratio_fitter)
         self.state, self.history = sd["state"], sd["history"]
         self._checkpoint_state = dict(self.state)
-        restore_training_state(sd, q_loss=self.q_loss, optimisers=self.optimisers, schedulers=self.schedulers,
-                               ratio_fitter=self.ratio_fitter)
         if self.state["stage"] != "ratio":
-            logger, self.logger = self.logger, None  # the weights were logged when stage 2 first started
-            try:
-                self._build_q_buffer()
-            finally:
-                self.logger = logger
+            self._build_q_buffer(log=False)  # the weights were logged when stage 2 first started
             if self.selection is not None:
                 self.selection.best, self.selection.last_state = sd.get("q_best"), sd.get("q_last")
         set_rng_state(sd["rng"])
-        self._resume_sd = None  # restored: free the copy
