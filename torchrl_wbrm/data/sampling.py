@@ -43,17 +43,17 @@ class BufferBatches:
 
     def __init__(self, buffer: TensorDictReplayBuffer, batch_size: int | None = None, *, device=None,
                  exclude=("index",)):
-        if not isinstance(buffer._sampler, RandomSampler) or type(buffer._sampler) is not RandomSampler:
-            raise TypeError(f"BufferBatches needs a RandomSampler, got {type(buffer._sampler).__name__}.")
-        storage = buffer._storage
+        if type(buffer.sampler) is not RandomSampler:
+            raise TypeError(f"BufferBatches needs a RandomSampler, got {type(buffer.sampler).__name__}.")
+        storage = buffer.storage
         if storage.ndim != 1:
             raise ValueError(f"BufferBatches needs a 1-d storage, got ndim={storage.ndim}.")
-        batch_size = batch_size if batch_size is not None else buffer._batch_size
+        batch_size = batch_size if batch_size is not None else buffer.batch_size
         if batch_size is None or batch_size <= 0:
             raise ValueError(f"batch_size must be > 0, got {batch_size!r}.")
-        self.storage = storage
+        self.storage, self.sampler = storage, buffer.sampler
         self.batch_size = int(batch_size)
-        data: TensorDictBase = storage._storage
+        data: TensorDictBase = storage[:]  # the stored rows (views: nothing is copied)
         self.length = len(storage)
         self.index_device = getattr(storage, "device", None)
         self.device = torch.device(device) if device is not None else data.device
@@ -80,10 +80,10 @@ class BufferBatches:
         self._new = getattr(TensorDict, "_new_unsafe", None)
 
     def indices(self) -> torch.Tensor:
-        """The next batch's indices: ``RandomSampler``'s own draw (``storage._rand_given_ndim``) for a host batch."""
+        """The next batch's indices: ``RandomSampler``'s own draw (its ``sample``) for a host batch."""
         if self._draw_on_batch_device:
             return torch.randint(0, self.length, (self.batch_size,), device=self.device)
-        return torch.randint(0, self.length, (self.batch_size,), generator=self.storage._rng, device=self.index_device)
+        return self.sampler.sample(self.storage, self.batch_size)[0]
 
     def gather(self, index: torch.Tensor) -> TensorDict:
         index = index.to(self.device)
@@ -131,7 +131,7 @@ class PairedSampler:
         self.batch_size = int(batch_size)
         self._sides = {}
         for name, buffer in ((BEHAVIOUR, behaviour), (EXPERT, expert)):
-            data = buffer._storage._storage
+            data = buffer.storage[:]
             exclude = tuple(k for k in data.keys() if k not in keep)
             self._sides[name] = BufferBatches(buffer, self.batch_size, device=device, exclude=exclude)
         self.device = self._sides[BEHAVIOUR].device
