@@ -226,7 +226,7 @@ def store_density_ratio(
         if n == 0:
             raise ValueError(f"The replay buffer is empty: there are no rows to store weights under {key!r} for; "
                              "extend it with the transitions first.")
-        rows = storage._storage[:n]
+        rows = storage[:]  # the stored rows (views)
     elif isinstance(target, TensorDictBase):
         if target.batch_dims == 0 or target.batch_size.numel() == 0:
             raise ValueError(f"The TensorDict has batch size {tuple(target.batch_size)}: there are no rows to store "
@@ -260,13 +260,15 @@ def store_density_ratio(
         w = w.reshape(*target.batch_size, *w.shape[1:])
         target.set(key, w)
         return w
-    data = storage._storage
-    if key in data.keys(True, True):  # overwrite in place (works on a locked, memory-mapped storage too)
-        stored = data.get(key)
+    if key in storage[:].keys(True, True):  # overwrite in place (works on a locked, memory-mapped storage too)
+        stored = storage[:].get(key)
         stored[:n] = w.to(stored.dtype).reshape(stored[:n].shape)
         _follow_rows(target, key, stored.shape[1:], stored.dtype)
         return w
     _follow_rows(target, key, w.shape[1:], w.dtype)
+    # a new entry: torchrl has no public way to add one to a storage (storage[rows] = ... fills it with zeros, or
+    # drops it on a locked storage), so it is set on the storage's TensorDict itself
+    data = storage._storage
     full = torch.full((data.shape[0], *w.shape[1:]), float("nan"), dtype=w.dtype)  # rows not written yet: none
     full[:n] = w
     locked = data.is_locked
