@@ -183,7 +183,7 @@ def _runtime_imports(tree: ast.AST):
 
 
 #: the package's floors, lowest first: a floor imports only from its own and the floors below it
-FLOORS = (("_console", "_devices", "keys"), ("envs",), ("policies", "modules"), ("objectives",), ("evaluation",),
+FLOORS = (("_console", "_devices", "_files", "keys"), ("envs",), ("policies", "modules"), ("objectives",), ("evaluation",),
           ("data",), ("tasks",), ("ratio",), ("ope",), ("algos",), ("training",), ("cli",), ("__main__",))
 
 
