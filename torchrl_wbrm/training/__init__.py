@@ -14,7 +14,8 @@ from torchrl_wbrm.training.config import (
     validate_config,
 )
 from torchrl_wbrm.training.checkpoint import get_rng_state, set_rng_state, set_seed
-from torchrl_wbrm.training.trainer import WBRMTrainer, default_run_dir
+from torchrl_wbrm.training.rundir import default_run_dir
+from torchrl_wbrm.training.trainer import WBRMTrainer
 
 __all__ = [
     "EvalConfig",

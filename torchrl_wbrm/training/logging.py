@@ -19,6 +19,7 @@ Read an offline run back with ``wandb leet <run dir>/wandb`` (a terminal dashboa
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -29,8 +30,8 @@ from torchrl.record.loggers import get_logger
 from torchrl_wbrm.keys import DENSITY_RATIO_ESS, LOSS_DENSITY_RATIO, WEIGHT_ESS
 from torchrl_wbrm._console import quiet_libraries
 
-__all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_run_summary", "log_study_summary",
-           "markdown_tables", "truncate_csv_logs"]
+__all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_scalars", "log_run_summary",
+           "log_study_summary", "markdown_tables", "truncate_csv_logs"]
 
 def configure_console(verbose: bool) -> None:
     """Silence the libraries' INFO chatter on the console (``verbose=False``), or bring it back (``True``): torchrl's
@@ -219,6 +220,14 @@ def _flat_numbers(record: dict, prefix: str = "") -> dict[str, float]:
         elif isinstance(value, (int, float)):
             out[f"{prefix}{key}"] = value
     return out
+
+
+def log_scalars(logger, scalars: dict[str, float], step: int) -> None:
+    """Log each finite figure of ``scalars`` at ``step`` (``logger``: a torchrl ``Logger``, or ``None``: nothing)."""
+    if logger is not None:
+        for k, v in scalars.items():
+            if v is not None and math.isfinite(v):
+                logger.log_scalar(k, v, step=step)
 
 
 def log_run_summary(logger, results: dict, run_dir: str | os.PathLike) -> None:

@@ -15,6 +15,7 @@ import os
 import re
 import shutil
 import sys
+import time
 from pathlib import Path
 
 try:  # advisory locks (POSIX); without them a run directory is not locked
@@ -25,7 +26,7 @@ except ImportError:  # pragma: no cover - Windows
 from torchrl_wbrm.keys import CHECKPOINT, HISTORY, RESULTS
 
 __all__ = ["HYDRA_RECORD", "RUN_FILES", "RUN_OUTPUTS", "SEED_DIR", "RunDirClaim", "RunDirInUse", "check_run_dir",
-           "claim_run_dir", "clear_run_outputs", "given_claim", "holds_run", "linked_outputs", "refuse_links",
+           "claim_run_dir", "clear_run_outputs", "default_run_dir", "given_claim", "holds_run", "linked_outputs", "refuse_links",
            "remove_empty", "unique_dir"]
 
 
@@ -239,6 +240,13 @@ def given_claim(claim: RunDirClaim | None, run_dir: str | os.PathLike) -> RunDir
     if os.path.realpath(claim.path) != os.path.realpath(run_dir):
         raise ValueError(f"claim= holds {claim.path}, not this run's directory {run_dir}.")
     return claim
+
+
+def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
+    """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
+    created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
+    second get directories of their own)."""
+    return unique_dir(Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}")
 
 
 def unique_dir(path: Path) -> Path:

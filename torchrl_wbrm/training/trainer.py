@@ -13,9 +13,7 @@ bit-identical to an uninterrupted run) and the stops (:mod:`torchrl_wbrm.trainin
 from __future__ import annotations
 
 import copy
-import math
 import os
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -33,25 +31,19 @@ from torchrl_wbrm.ratio import NonFiniteWeightsError, Weighting, WeightsOver
 from torchrl_wbrm.training.checkpoint import (checkpoint_state, restore_training_state, set_rng_state, set_seed,
                                               write_checkpoint)
 from torchrl_wbrm.training.config import PreparedConfig, WBRMConfig, config_as_dict, prepare_config
-from torchrl_wbrm.training.logging import configure_console, make_logger, progress_postfix, truncate_csv_logs
+from torchrl_wbrm.training.logging import (configure_console, log_scalars, make_logger, progress_postfix,
+                                          truncate_csv_logs)
 from torchrl_wbrm.training.evaluation import RunEvaluation
 from torchrl_wbrm.training.parts import check_d_settings, load_run_data, make_algo, make_ratio_fitter, step_schedulers
 from torchrl_wbrm.training.selection import EXPERT_LIKE, Selection, make_criterion
 from torchrl_wbrm.training.results import pause_for_test
 from torchrl_wbrm.training.run_results import diverged_results, finished_results, write_results
 from torchrl_wbrm.training.resume import changed_keys, check_run_request
-from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, unique_dir
+from torchrl_wbrm.training.rundir import RunDirClaim, check_run_dir, claim_run_dir, default_run_dir
 from torchrl_wbrm.training.stops import (FiniteWatch, RunInterrupted, StopNow, StopSignals, TrainingDiverged,
                                          first_non_finite)
 
-__all__ = ["WBRMTrainer", "default_run_dir"]
-
-
-def default_run_dir(cfg, root: str | os.PathLike = "outputs/wbrm_offline") -> Path:
-    """A new run directory named as the recipe names its own, ``<root>/<env.name>/<%Y-%m-%d_%H-%M-%S>_seed<seed>``,
-    created with one exclusive ``mkdir`` (``..._1``, ``..._2``, ... when it exists: two runs started in the same
-    second get directories of their own)."""
-    return unique_dir(Path(root) / cfg.env.name / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_seed{cfg.seed}")
+__all__ = ["WBRMTrainer"]
 
 
 class WBRMTrainer:
@@ -63,7 +55,7 @@ class WBRMTrainer:
             with its env's task).
         run_dir: where checkpoints, ``results.json`` and plots go. ``None`` (the default): a new dated directory
             under the working directory, as the recipe's: ``outputs/wbrm_offline/<env.name>/<date>_seed<seed>``
-            (:func:`default_run_dir`). A resume needs the directory it continues.
+            (:func:`~torchrl_wbrm.training.rundir.default_run_dir`). A resume needs the directory it continues.
 
     Keyword Args:
         logger: a torchrl ``Logger``, ``None`` (no logging), or ``"config"`` (the default): the logger
@@ -208,7 +200,7 @@ class WBRMTrainer:
                     running = {k: float(v) for k, v in figures.items()}
                     if name == "q":
                         self.q_bound.watch(running, step)
-                    self._log({f"{name}/{k}": v for k, v in running.items()}, step)
+                    log_scalars(self.logger, {f"{name}/{k}": v for k, v in running.items()}, step)
                     self.history.append({"stage": f"{name}_train", "step": step, **running})
                     bar.set_postfix_str(progress_postfix(running), refresh=False)  # fits a 120-column line
                 if step % eval_every == 0 or step == total_steps:
@@ -237,12 +229,6 @@ class WBRMTrainer:
             self.save_checkpoint()
             raise RunInterrupted(err.signum, name, step, self.run_dir, during="evaluation") from None
 
-    def _log(self, scalars: dict[str, float], step: int) -> None:
-        if self.logger is not None:
-            for k, v in scalars.items():
-                if v is not None and math.isfinite(v):
-                    self.logger.log_scalar(k, v, step=step)
-
     # ------------------------------------------------------------------ stage 1
     @torch.no_grad()
     def _ratio_eval(self, step: int) -> bool:
@@ -258,7 +244,7 @@ class WBRMTrainer:
         bad = first_non_finite(checked)
         if bad is not None:
             raise TrainingDiverged(what, record["step"], bad[0], bad[1])
-        self._log({f"{prefix}/{k}": v for k, v in record.items() if isinstance(v, float)}, record["step"])
+        log_scalars(self.logger, {f"{prefix}/{k}": v for k, v in record.items() if isinstance(v, float)}, record["step"])
 
     # ------------------------------------------------------------------ stage 1's hand-over to stage 2
     def _weights_over(self, data: TensorDictBase, what: str, **kwargs) -> WeightsOver:
@@ -298,7 +284,7 @@ class WBRMTrainer:
                 device=self.device))
         self.weight_stats = over.figures
         if log:
-            self._log({f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
+            log_scalars(self.logger, {f"weights/{k}": v for k, v in self.weight_stats.items()}, 0)
 
     def offline_value(self, steps: int | None = None) -> tuple[dict, dict]:
         """The current actor's value from D's training episodes alone, without the environment
