@@ -13,9 +13,10 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_wbrm.data import make_replay_buffer
 from torchrl_wbrm.modules import DensityRatioNetwork, make_deterministic_actor, make_q_network
-from torchrl_wbrm.objectives import RobustDensityRatioLoss, WeightedBellmanLoss
+from torchrl_wbrm.objectives import FQELoss, MABOLoss, RobustDensityRatioLoss, WeightedBellmanLoss
 from torchrl_wbrm.objectives._fast import ForeachSoftUpdate, NetworkCall
 from torchrl_wbrm.algos import adam_options
+from torchrl_wbrm.algos.base import ExpertCloning
 from torchrl_wbrm.data.sampling import BufferBatches, PairedSampler
 
 SPEC = Bounded(-2.0, 2.0, (2,))
@@ -157,6 +158,103 @@ def test_ratio_fast_path_equals_the_tensordict_path(kwargs):
         assert torch.equal(outs[0][0][key], outs[1][0][key]), key
     for key, grad in outs[0][1].items():
         assert torch.equal(grad, outs[1][1][key]), key
+
+
+def _fqe(seed):
+    torch.manual_seed(seed)
+    loss = FQELoss(make_q_network(3, 2, initial_bias=0.0, num_cells=(8,)), make_deterministic_actor(3, SPEC, num_cells=(8,)))
+    loss.make_value_estimator(gamma=0.9)
+    SoftUpdate(loss, tau=0.1)
+    data = _data(16)
+    return loss, lambda: {"loss_value": loss(data.clone())["loss_value"]}
+
+
+def _ratio(seed):
+    torch.manual_seed(seed)
+    loss = RobustDensityRatioLoss(DensityRatioNetwork(3, 2, num_cells=(8,)))
+    batch = TensorDict({"behaviour": _data(16).select("observation", "action"),
+                        "expert": _data(8, seed=1).select("observation", "action")}, [])
+    return loss, lambda: {"loss_density_ratio": loss(batch)["loss_density_ratio"]}
+
+
+def _mabo(seed):
+    torch.manual_seed(seed)
+    loss = MABOLoss(make_q_network(3, 2, initial_bias=0.0, num_cells=(8,)),
+                    make_q_network(3, 2, initial_bias=0.0, num_cells=(8,), out_key="adversary_output"),
+                    actor_network=make_deterministic_actor(3, SPEC, num_cells=(8,)), delay_value=True,
+                    delay_actor=True)  # (torchrl hands out `.data` for absent targets: refused under vmap)
+    loss.make_value_estimator(gamma=0.9)
+    SoftUpdate(loss, tau=0.1)
+    data = _data(16)
+
+    def losses():
+        out = loss(data.clone())
+        return {key: out[key] for key in out.keys() if key.startswith("loss_")}
+
+    return loss, losses
+
+
+def _cloning(seed):
+    torch.manual_seed(seed)
+    loss = WeightedBellmanLoss(make_q_network(3, 2, initial_bias=0.0, num_cells=(8,)),
+                               actor_network=make_deterministic_actor(3, SPEC, num_cells=(8,)))
+    cloning = ExpertCloning(loss.actor_network, _data(32, seed=2).select("observation", "action"), SPEC, alpha=1.0,
+                            batch_size=8, weighted_d=True)
+    data = _data(16)
+
+    def losses():
+        torch.manual_seed(5)  # the same S^e draws
+        out, _ = cloning(torch.tensor(1.0), torch.tensor(2.0), loss.actor_network_params, data)
+        return {"loss_actor": out}
+
+    return loss, losses
+
+
+def _as_leaves(params: TensorDict) -> TensorDict:
+    return params.apply(lambda t: t.detach().clone().requires_grad_(t.is_floating_point()))
+
+
+@pytest.mark.parametrize("build", [_fqe, _ratio, _mabo, _cloning])
+def test_every_network_call_reads_the_parameters_put_in_by_to_module(build):
+    """Each loss that calls its networks through NetworkCall, under ``params.to_module(loss)`` with another loss's
+    parameters (and, but for ExpertCloning's buffer draws, under torch.vmap over two members' stacked parameters):
+    the values and gradients are those of the other loss object called on its own."""
+    host, host_losses = build(0)
+    members = [build(1), build(2)]
+    before = {k: v.detach() for k, v in host_losses().items()}
+
+    def own(loss, losses):
+        loss.zero_grad()
+        out = losses()
+        sum(out.values()).backward()
+        grads = {key: p.grad for key, p in TensorDict.from_module(loss).items(True, True) if p.grad is not None}
+        assert grads
+        return {k: v.detach() for k, v in out.items()}, grads
+
+    def assert_member(values, grad_of, member):
+        own_values, own_grads = own(*member)
+        torch.testing.assert_close(values, own_values)
+        assert all(not torch.equal(values[k], before[k]) for k in before)  # (not the host's own values)
+        for key, grad in own_grads.items():
+            torch.testing.assert_close(grad_of(key), grad, msg=lambda msg: f"{key}: {msg}")
+
+    params = _as_leaves(TensorDict.from_module(members[0][0]))
+    with params.to_module(host):
+        out = host_losses()
+    sum(out.values()).backward()
+    assert_member({k: v.detach() for k, v in out.items()}, lambda key: params[key].grad, members[0])
+    if build is _cloning:
+        return
+    stacked = _as_leaves(TensorDict.from_modules(*(loss for loss, _ in members)))
+
+    def call(p):
+        with p.to_module(host):
+            return host_losses()
+
+    out = torch.vmap(call, randomness="different")(stacked)
+    sum(v.sum() for v in out.values()).backward()
+    for m, member in enumerate(members):
+        assert_member({k: v[m].detach() for k, v in out.items()}, lambda key, m=m: stacked[key].grad[m], member)
 
 
 def test_foreach_soft_update_is_bitwise_torchrl_soft_update():

@@ -178,28 +178,97 @@ def _members(loss, num_members: int) -> TensorDict:
     return torch.stack(members).detach()
 
 
+def _member_loss(seed: int, **kwargs) -> WeightedBellmanLoss:
+    """A loss of its own, with networks drawn from ``seed`` and targets moved off them."""
+    torch.manual_seed(seed)
+    spec = Bounded(-1.0, 1.0, (1,))
+    loss = WeightedBellmanLoss(make_q_network(2, 1, num_cells=(8,), initial_bias=0.0),
+                               actor_network=make_deterministic_actor(2, spec, num_cells=(8,)), **kwargs)
+    loss.make_value_estimator(gamma=GAMMA)
+    SoftUpdate(loss, tau=0.1)
+    with torch.no_grad():
+        for params in (loss.target_value_network_params, loss.target_actor_network_params):
+            for p in params.values(True, True):
+                p.add_(0.1 * torch.randn_like(p))
+    return loss
+
+
+def _own_losses_and_gradients(loss, batch) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """``(loss_value, loss_actor, {(params name, *key): gradient of their sum})`` of a loss called on its own."""
+    loss.zero_grad()
+    out = loss(batch)
+    (out["loss_value"] + out["loss_actor"]).backward()
+    grads = {(name, *key): p.grad for name in ("value_network_params", "actor_network_params")
+             for key, p in getattr(loss, name).items(True, True)}
+    return out["loss_value"].detach(), out["loss_actor"].detach(), grads
+
+
+def _assert_member_equals_its_own_loss(grad_of, value, actor, own_loss, batch) -> None:
+    """A member's losses and the gradients they put on its parameters (``grad_of(key)``) are those of its own loss
+    object."""
+    own_value, own_actor, own_grads = _own_losses_and_gradients(own_loss, batch)
+    torch.testing.assert_close((value, actor), (own_value, own_actor))
+    for key, grad in own_grads.items():
+        if grad is not None:  # (not the actor's action bounds: buffers)
+            member_grad = grad_of(key)
+            assert member_grad is not None, key
+            torch.testing.assert_close(member_grad, grad, msg=lambda msg: f"{key}: {msg}")
+
+
+def _stacked(losses) -> TensorDict:
+    """TorchRL's ensemble parameters: ``TensorDict.from_modules`` of the members' losses, as leaf tensors."""
+    return TensorDict.from_modules(*losses).apply(lambda t: t.detach().clone().requires_grad_(t.is_floating_point()))
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
 @pytest.mark.parametrize("batch_per_member", [False, True])
-def test_a_stacked_parameter_ensemble_under_vmap_equals_a_loop(batch_per_member):
-    """TorchRL's ensemble recipe (TensorDict.from_module, torch.stack, params.to_module inside torch.vmap) runs 150
-    calls, with one batch for all members and with one batch per member; every member's losses equal a loop's."""
+def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(batch_per_member, fast_path):
+    """TorchRL's ensemble recipe (TensorDict.from_modules of 3 members' losses, params.to_module inside torch.vmap on
+    a fourth loss, with its own parameters): every member's losses and gradients equal those of the member's own
+    loss object called directly, with one batch for all members and with one batch per member."""
     num_members = 3
-    loss = _continuous_loss()
-    stacked = _members(loss, num_members)
+    members = [_member_loss(100 + m) for m in range(num_members)]
+    host = _member_loss(0)
+    host.fast_path = fast_path
+    for i in range(3):
+        stacked = _stacked(members)
 
-    def call(params, batch):
-        with params.to_module(loss):
-            out = loss(batch)
-        return out["loss_value"], out["loss_actor"]
+        def call(params, batch):
+            with params.to_module(host):
+                out = host(batch)
+            return out["loss_value"], out["loss_actor"]
 
-    ensemble = torch.vmap(call, (0, 0 if batch_per_member else None), randomness=loss.vmap_randomness)
-    for i in range(150):
         batches = [_continuous_batch(1000 * i + m) for m in range(num_members if batch_per_member else 1)]
         batch = torch.stack(batches) if batch_per_member else batches[0]
-        value, actor = ensemble(stacked, batch.clone())
-        if i % 50 == 0 or i == 149:
-            for m in range(num_members):
-                expected = call(stacked[m], batches[m if batch_per_member else 0].clone())
-                torch.testing.assert_close((value[m], actor[m]), expected)
+        value, actor = torch.vmap(call, (0, 0 if batch_per_member else None),
+                                  randomness=host.vmap_randomness)(stacked, batch.clone())
+        (value.sum() + actor.sum()).backward()
+        for m in range(num_members):
+            def grad_of(key, m=m):
+                grad = stacked[key].grad
+                return None if grad is None else grad[m]
+
+            _assert_member_equals_its_own_loss(grad_of, value[m], actor[m], members[m],
+                                               batches[m if batch_per_member else 0].clone())
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_params_to_module_without_vmap_computes_with_the_installed_parameters(fast_path):
+    """``with params.to_module(loss): loss(batch)`` with another loss's parameters (TensorDict.from_module) gives that
+    loss's values and gradients, not those of the parameters the loss holds; the loss's own are back afterwards."""
+    host, other = _member_loss(0), _member_loss(1)
+    host.fast_path = fast_path
+    batch = _continuous_batch(3)
+    own_value, own_actor, _ = _own_losses_and_gradients(host, batch.clone())
+    params = TensorDict.from_module(other).apply(lambda t: t.detach().clone().requires_grad_(t.is_floating_point()))
+    host.zero_grad()
+    with params.to_module(host):
+        out = host(batch.clone())
+    (out["loss_value"] + out["loss_actor"]).backward()
+    _assert_member_equals_its_own_loss(lambda key: params[key].grad, out["loss_value"].detach(), out["loss_actor"].detach(), other,
+                                       batch.clone())
+    assert all(p.grad is None for p in host.parameters())
+    torch.testing.assert_close(_own_losses_and_gradients(host, batch.clone())[:2], (own_value, own_actor))
 
 
 def test_a_sampled_maximiser_runs_in_a_vmap_ensemble():

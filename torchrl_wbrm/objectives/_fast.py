@@ -10,6 +10,11 @@ output key, no ``method``, no keyword inputs, no hooks on the wrapper) it puts t
 module slots with plain dictionary assignments and calls ``net.module`` on the input tensors, so the result, its
 gradient and the random draws are those of the TensorDict call (tested); for any other module (a
 ``TensorDictSequential``, a probabilistic or safe actor) it makes that TensorDict call.
+
+The tensors are read, at each call, from the TensorDict the parameters hold at that moment: the one that
+``params.to_module(loss)`` puts into a loss's ``TensorDictParams`` (TorchRL's functional and ``torch.vmap`` ensemble
+idiom) as well as the loss's own. A ``TensorDictParams``' registered ``nn.Parameter`` entries are not read: they
+stay the loss's own while ``to_module`` has put other tensors in.
 """
 from __future__ import annotations
 
@@ -42,7 +47,7 @@ class NetworkCall:
     parameters in (no gradient reaches them; it still reaches the inputs), as ``params.detach().to_module(...)``.
     """
 
-    __slots__ = ("network", "module", "slots", "out_key", "in_keys", "direct", "why")
+    __slots__ = ("network", "module", "slots", "tree", "out_key", "in_keys", "direct", "why")
 
     def __init__(self, network, params, out_key, *, why: str = "the network's output", direct: bool = True):
         self.network = network
@@ -51,6 +56,7 @@ class NetworkCall:
         self.out_key = out_key
         self.in_keys = list(network.in_keys)
         self.slots = self._slots(network, params, out_key) if direct else None
+        self.tree = _nested(self.slots) if self.slots is not None else None
         self.direct = self.slots is not None
 
     @staticmethod
@@ -113,40 +119,64 @@ class NetworkCall:
                 out = self.network(td)
             return get_entry(out, self.out_key, self.why)
         saved = []
-        slots = self.slots
-        # a TensorDictParams' own two dicts walked in place (no generator per entry), any other TensorDict by _entries
-        if isinstance(params, TensorDictParams):
-            stores = (params._parameters, params._buffers)
-        else:
-            stores = (params if isinstance(params, dict) else dict(_entries(params)),)
         try:
-            for store in stores:
-                for name, value in store.items():
+            if isinstance(params, dict):  # dotted names -> tensors (named_tensors)
+                slots = self.slots
+                for name, value in params.items():
                     container, attr = slots[name]
                     saved.append((container, attr, container[attr]))
                     container[attr] = value.detach() if detach and value is not None else value
+            else:  # the TensorDict the parameters hold now (the one to_module put in, if any), level by level
+                _install(self.tree, params, saved, detach)
             return self.module(*[inputs[key] for key in self.in_keys])
         finally:
             for container, attr, old in saved:
                 container[attr] = old
 
 
+def _nested(slots: dict) -> dict:
+    """The flat ``{dotted name: slot}`` as nested dictionaries, one level per TensorDict level."""
+    tree: dict = {}
+    for name, slot in slots.items():
+        *path, attr = name.split(".")
+        level = tree
+        for key in path:
+            level = level.setdefault(key, {})
+        level[attr] = slot
+    return tree
+
+
+def _install(tree: dict, params, saved: list, detach: bool) -> None:
+    """Put each tensor of the TensorDict ``params`` into its slot of ``tree`` (nested as ``params``), recording the
+    slot's previous value in ``saved``."""
+    for key, value in params.items():
+        slot = tree[key]
+        if type(slot) is dict:
+            _install(slot, value, saved, detach)
+            continue
+        container, attr = slot
+        saved.append((container, attr, container[attr]))
+        container[attr] = value.detach() if detach and value is not None else value
+
+
 def named_tensors(params) -> dict:
     """``{dotted name: tensor}`` of a loss's parameters (a ``TensorDictParams`` or any TensorDict), the same tensors
-    (no copy, gradients flow): a plain pytree that ``torch.vmap`` maps over, and that :class:`NetworkCall` takes."""
-    return dict(_entries(params))
+    (no copy, gradients flow): a plain pytree that ``torch.vmap`` maps over, and that :class:`NetworkCall` takes.
+
+    Read level by level from the TensorDict the parameters hold now: for a loss's ``TensorDictParams``, the one
+    ``params.to_module(loss)`` put in, if any, not its registered ``nn.Parameter`` entries (which stay the loss's
+    own)."""
+    out: dict = {}
+    _flatten(params, "", out)
+    return out
 
 
-def _entries(params):
-    """``(dotted name, tensor)`` of a ``TensorDictParams`` (its registered parameters and buffers: two dict walks) or
-    of any other TensorDict (e.g. the detached online parameters TorchRL hands out for a target that does not
-    exist)."""
-    if isinstance(params, TensorDictParams):
-        yield from params._parameters.items()
-        yield from params._buffers.items()
-    else:
-        for key, value in params.items(True, True):
-            yield (".".join(key) if isinstance(key, tuple) else key), value
+def _flatten(params, prefix: str, out: dict) -> None:
+    for key, value in params.items():
+        if isinstance(value, torch.Tensor) or value is None:
+            out[prefix + key] = value
+        else:
+            _flatten(value, f"{prefix}{key}.", out)
 
 
 class ForeachSoftUpdate(SoftUpdate):
