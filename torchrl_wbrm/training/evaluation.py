@@ -17,9 +17,13 @@ __all__ = ["RunEvaluation"]
 class RunEvaluation:
     """The evaluations of one run of the config ``cfg``: its ``task``'s evaluator (``build=False``: none, no
     evaluation env or simulation, only the figures from D), its ``algo``'s ``policy``, ``q_value`` and
-    ``bellman_loss``, D's ``train`` and ``holdout`` episodes, the networks' ``device``."""
+    ``bellman_loss``, D's ``train`` and ``holdout`` episodes, the networks' ``device``. ``build=False`` is refused
+    where stage 2 reads the exact ratio (``ratio.source=exact``), which the evaluator holds."""
 
     def __init__(self, cfg, task, algo, train, holdout, device, *, build: bool = True):
+        if not build and cfg.ratio.source == "exact" and algo.uses_ratio:
+            raise ValueError("evaluation=False builds no evaluator, and ratio.source=exact reads the evaluator's "
+                             "exact ratio: build the trainer with evaluation=True.")
         self.cfg, self.task, self.algo, self.train, self.holdout, self.device = cfg, task, algo, train, holdout, device
         self.evaluator = task.evaluator(cfg.eval) if build else None
         self.eval_samples = self.evaluator.eval_samples if build else {}  # where Q* is known

@@ -152,12 +152,9 @@ class WBRMTrainer:
         self.q_loss, self.actor, self.optimisers = self.algo.loss, self.algo.policy, self.algo.optimisers
         check_d_settings(self.cfg, self.algo, self.q_train_data)
         self.q_buffer, self.selection = None, None  # built after stage 1 (_build_q_buffer), on the data with ŵ
-        rc = self.cfg.ratio
-        if not evaluation and rc.source == "exact" and self.algo.uses_ratio:
-            raise ValueError("evaluation=False builds no evaluator, and ratio.source=exact reads the evaluator's "
-                             "exact ratio: build the trainer with evaluation=True.")
         self.evaluation = RunEvaluation(self.cfg, self.task, self.algo, self.q_train_data, self.q_holdout, self.device,
                                         build=evaluation)
+        rc = self.cfg.ratio
         self.weighting = Weighting(
             source=rc.source if self.algo.uses_ratio else "none", network=self.ratio_network,
             true_ratio=self.evaluation.true_ratio, fitter=self.ratio_fitter, relative_beta=rc.relative_beta,
