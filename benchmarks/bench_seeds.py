@@ -130,10 +130,7 @@ def vectorised_update(trainers: list):
 
     qc = trainers[0].cfg.q
     losses = [copy.deepcopy(t.algo.loss) for t in trainers]
-    template = losses[0]
-    # the loss's tensor fast path reads the parameters it was built with, not those to_module puts in: the
-    # TensorDict call, as TorchRL's losses make it, reads the stacked slices
-    template.fast_path = False
+    template = losses[0]  # its default path: the network calls read the stacked slices params.to_module puts in
     stacked = TensorDict.from_modules(*losses, as_module=True, lock=False)
     value = list(stacked["value_network_params"].values(True, True))
     actor = list(stacked["actor_network_params"].values(True, True))
