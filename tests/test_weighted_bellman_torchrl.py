@@ -220,15 +220,17 @@ def _stacked(losses) -> TensorDict:
     return TensorDict.from_modules(*losses).apply(lambda t: t.detach().clone().requires_grad_(t.is_floating_point()))
 
 
-@pytest.mark.parametrize("fast_path", [True, False])
-@pytest.mark.parametrize("batch_per_member", [False, True])
-def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(batch_per_member, fast_path):
+@pytest.mark.parametrize("batch_per_member, fast_path, kwargs", [
+    (False, True, {}), (True, True, {}), (False, False, {}), (True, False, {}), (True, True, {"num_qvalue_nets": 2}),
+])
+def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(batch_per_member, fast_path, kwargs):
     """TorchRL's ensemble recipe (TensorDict.from_modules of 3 members' losses, params.to_module inside torch.vmap on
     a fourth loss, with its own parameters): every member's losses and gradients equal those of the member's own
-    loss object called directly, with one batch for all members and with one batch per member."""
+    loss object called directly, with one batch for all members and with one batch per member, on the tensor path
+    and the TensorDict path, with one critic and with twin critics."""
     num_members = 3
-    members = [_member_loss(100 + m) for m in range(num_members)]
-    host = _member_loss(0)
+    members = [_member_loss(100 + m, **kwargs) for m in range(num_members)]
+    host = _member_loss(0, **kwargs)
     host.fast_path = fast_path
     for i in range(3):
         stacked = _stacked(members)
@@ -252,11 +254,12 @@ def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(ba
                                                batches[m if batch_per_member else 0].clone())
 
 
+@pytest.mark.parametrize("kwargs", [{}, {"num_qvalue_nets": 2}])
 @pytest.mark.parametrize("fast_path", [True, False])
-def test_params_to_module_without_vmap_computes_with_the_installed_parameters(fast_path):
+def test_params_to_module_without_vmap_computes_with_the_installed_parameters(fast_path, kwargs):
     """``with params.to_module(loss): loss(batch)`` with another loss's parameters (TensorDict.from_module) gives that
     loss's values and gradients, not those of the parameters the loss holds; the loss's own are back afterwards."""
-    host, other = _member_loss(0), _member_loss(1)
+    host, other = _member_loss(0, **kwargs), _member_loss(1, **kwargs)
     host.fast_path = fast_path
     batch = _continuous_batch(3)
     own_value, own_actor, _ = _own_losses_and_gradients(host, batch.clone())
