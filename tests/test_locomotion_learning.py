@@ -14,7 +14,9 @@ data's mean episode return plus half the gap to the expert pool's mean return.
 - HalfCheetah (bar 2432: behaviour 10.6 over 50 episodes, 3 of them the expert's; pool 4852.4): the default recipe
   FAILS, an expected failure kept as a strict ``xfail`` so that a fix shows: stage 1 collapses (the mean of ŵ over
   ``D`` is 85.5, 91% of ``D``'s rows at ŵ's lower bound) and stage 2 on those weights returns 544 at 300 updates
-  and −93 at 1,000. The same run with ŵ ≡ 1 (``algo=brm``) passes: seed 0 returns 2786.
+  and −93 at 1,000. The same run with ŵ ≡ 1 (``algo=brm``) passes at seed 0 (2786) but not at every seed: seed 1
+  returns 1340 and seed 2 −576 (flagged ``below_behaviour``). At 300 updates stage 2 on HalfCheetah is not reliable
+  with or without the ratio; the test holds the seed-0 run.
 """
 from __future__ import annotations
 
