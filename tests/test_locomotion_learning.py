@@ -17,6 +17,11 @@ data's mean episode return plus half the gap to the expert pool's mean return.
   and −93 at 1,000. The same run with ŵ ≡ 1 (``algo=brm``) passes at seed 0 (2786) but not at every seed: seed 1
   returns 1340 and seed 2 −576 (flagged ``below_behaviour``). At 300 updates stage 2 on HalfCheetah is not reliable
   with or without the ratio; the test holds the seed-0 run.
+- Walker2d (bar 1026: behaviour 6.8 over 2,202 episodes, 6 of them the expert's; pool 2045.4, an expert that falls
+  in some episodes): the default recipe FAILS (strict ``xfail``): seeds 0, 1, 2 return −23 (flagged
+  ``below_behaviour``; ŵ averages 0.15 over ``D``, 98% of its rows at the lower bound), 102 and 388. Nothing else
+  passes either: ŵ ≡ 1 returns 124 at 300 updates and −42 at 3,000, cloning ``S^e`` 476, and the untrained actor
+  (``q.steps=10``) 263.
 """
 from __future__ import annotations
 
@@ -53,6 +58,9 @@ LEARNING_CASES = [
         "stage 1 collapses on HalfCheetah's mixture (flag ratio_collapse: the mean of ŵ over D is 85.5, 91% of "
         "D's rows at ŵ's lower bound), and stage 2 on those weights returns 544 at 300 updates"))),
     ("halfcheetah", "brm"),
+    pytest.param("walker2d", "wbrm", marks=pytest.mark.xfail(strict=True, reason=(
+        "on Walker2d's mixture no run reaches the bar at this budget: WBRM returns -23, 102 and 388 (seeds 0-2), "
+        "BRM 124, cloning S^e 476"))),
 ]
 
 
