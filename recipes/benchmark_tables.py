@@ -163,9 +163,37 @@ def few_demonstrations_report(out: Path) -> str:
         flagged, wall = flagged_and_wall(recs)
         lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {len(recs)} | "
                      f"{ci_cell(recs, 'final.normalised_score', 1)} | {per_seed} | {flagged} | {wall} |")
+    lines += ["", *paired_differences(rows)]
     if excluded:
         lines.append(f"\n{len(excluded)} run(s) excluded (not finished: diverged or interrupted).")
     return "\n".join(lines) + "\n"
+
+
+#: the paired differences the few-demonstration table reports: (method, against)
+PAIRS = (("wbrm", "brm"), ("wbrm", "bc"), ("brm", "bc"))
+
+
+def paired_differences(rows: dict[tuple, list[dict]]) -> list[str]:
+    """The table of paired differences: per task and cell, ``method − against`` in normalised score over the seeds
+    both ran (same seed: same S^e draw, same data), mean ± 95% Student-t interval and each seed's."""
+    from torchrl_wbrm.evaluation.stats import mean_ci
+
+    lines = ["| task | cell | difference | seeds | mean ± 95% CI | per seed |", "|---|---|---|---|---|---|"]
+    cells = sorted({key[:2] for key in rows}, key=str)
+    for task, cell in cells:
+        for method, against in PAIRS:
+            score = {name: {r["seed"]: r["final"]["normalised_score"] for r in rows.get((task, cell, name), [])
+                            if isinstance(r.get("final", {}).get("normalised_score"), (int, float))}
+                     for name in (method, against)}
+            seeds = sorted(set(score[method]) & set(score[against]))
+            if not seeds:
+                continue
+            diffs = [score[method][s] - score[against][s] for s in seeds]
+            ci = mean_ci(diffs)
+            cell_ci = f"{ci.mean:+.1f}" + (f" ± {ci.half_width:.1f}" if len(diffs) > 1 else "")
+            lines.append(f"| {task} | {cell} | {method} − {against} | {len(seeds)} | {cell_ci} | "
+                         + ", ".join(f"{s}: {d:+.1f}" for s, d in zip(seeds, diffs)) + " |")
+    return lines if len(lines) > 2 else []
 
 
 def few_demonstrations_plot(out: Path, against: str = "episodes") -> Path | None:

@@ -421,3 +421,23 @@ def test_the_share_plot_draws_a_line_per_method_against_the_expert_share(tmp_pat
     assert drawn == {"wbrm": ([1, 5], [15.0, 60.0]), "bc": ([5], [30.0])}
     with pytest.raises(ValueError, match="against="):
         module.few_demonstrations_plot(tmp_path, "size")
+
+
+def test_the_few_demonstration_report_gives_paired_differences_over_shared_seeds():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def runs(*scores):
+        return [{"seed": s, "final": {"normalised_score": v}} for s, v in scores]
+
+    rows = {("hopper", "se5_expert05", "wbrm"): runs((0, 30.0), (1, 20.0), (2, 34.0)),
+            ("hopper", "se5_expert05", "brm"): runs((0, 33.0), (1, 33.0)),  # seed 2 missing: not paired
+            ("hopper", "se5_expert05", "bc"): runs((5, 34.0))}             # no shared seed with either
+    lines = module.paired_differences(rows)
+    assert lines[2] == "| hopper | se5_expert05 | wbrm − brm | 2 | -8.0 ± 63.5 | 0: -3.0, 1: -13.0 |"
+    assert len(lines) == 3 and module.paired_differences({}) == []
