@@ -329,7 +329,9 @@ def main(argv=None) -> None:
     from studies.runs import run_cells
 
     few = args.few_demonstrations
-    out = Path(args.out or ("results/few_demonstrations" if few else "results/benchmark")).resolve()
+    locomotion = few and all(t in LOCOMOTION_DATASETS for t in args.tasks)  # the locomotion page's table
+    out = Path(args.out or ("results/locomotion" if locomotion else "results/few_demonstrations" if few
+                            else "results/benchmark")).resolve()
     data_path = Path(args.data_path).resolve()
     if not args.report_only:
         from torchrl_wbrm.data.benchmark import few_demonstration_ids
@@ -364,9 +366,9 @@ def main(argv=None) -> None:
             else "the task's default `q.steps`")
     budget = (base if few else ", ".join(f"×{b}" for b in args.budgets) + " " + base) + (
         f"; every run with `{' '.join(args.overrides)}`" if args.overrides else "")
-    locomotion = few and all(t in LOCOMOTION_DATASETS for t in args.tasks)  # the locomotion page's table
-    figures = [few_demonstrations_plot(out), few_demonstrations_plot(out, "share") if locomotion else None] if few \
-        else []
+    # the locomotion table's figure: score against the expert's share of D (once it has two shares or more)
+    figures = ([few_demonstrations_plot(out, "share")] if len(args.expert_shares) > 1 else []) if locomotion else (
+        [few_demonstrations_plot(out)] if few else [])
     publish_study("locomotion" if locomotion else "few_demonstrations" if few else "benchmark", out / "tables.md",
                   docs_dir_from_args(args.docs_dir, args.quick), figures=figures,
                   seeds={r["seed"] for r in load_results(out) if "seed" in r},

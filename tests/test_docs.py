@@ -82,7 +82,8 @@ def test_the_doctests_pass(sphinx, doctrees, tmp_path):
 
 
 STUDIES = ["paper_tables", "weighting_study", "q_accuracy_study", "ablations", "convergence", "benchmark",
-           "peer_d3rlpy", "few_demonstrations", "misspecified_q", "offline_value", "offline_value_validation"]
+           "peer_d3rlpy", "few_demonstrations", "misspecified_q", "offline_value", "offline_value_validation",
+           "locomotion"]
 #: the results page of a fragment whose page is named otherwise
 PAGES = {"offline_value_validation": "offline_value"}
 
