@@ -29,7 +29,7 @@ from torchrl_wbrm.training import stops
 from torchrl_wbrm.training.rundir import RunDirClaim
 from torchrl_wbrm.training.stops import RunInterrupted
 from torchrl_wbrm.training.config import PreparedConfig, prepare_config
-from torchrl_wbrm.training.logging import make_logger
+from torchrl_wbrm.training.logging import finish_logger, make_logger
 from torchrl_wbrm.training.reporting import summarise
 
 __all__ = ["wbrm_offline", "make_dataset"]
@@ -146,6 +146,7 @@ def _wbrm_offline_app(cfg: DictConfig, prepared: PreparedConfig | None, claim: R
         sys.exit(err.exit_code)
     except OSError as err:  # a full or read-only disk, the run directory removed: one line, the file and the disk
         _stopped_on(err, cfg, run_dir, command)
+    finish_logger(trainer.logger)  # the wandb run ends with the run (finished or diverged), not at the process's exit
     results["wall_seconds"] = time.perf_counter() - start + prepared.task.check_seconds  # the checks' data read
     try:
         write_json(run_dir / RESULTS, results)

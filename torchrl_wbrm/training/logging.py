@@ -30,8 +30,8 @@ from torchrl.record.loggers import get_logger
 from torchrl_wbrm.keys import DENSITY_RATIO_ESS, LOSS_DENSITY_RATIO, WEIGHT_ESS
 from torchrl_wbrm._console import quiet_libraries
 
-__all__ = ["make_logger", "configure_console", "progress_postfix", "run_name", "log_scalars", "log_run_summary",
-           "log_study_summary", "markdown_tables", "truncate_csv_logs"]
+__all__ = ["make_logger", "configure_console", "finish_logger", "progress_postfix", "run_name", "log_scalars",
+           "log_run_summary", "log_study_summary", "markdown_tables", "truncate_csv_logs"]
 
 def configure_console(verbose: bool) -> None:
     """Silence the libraries' INFO chatter on the console (``verbose=False``), or bring it back (``True``): torchrl's
@@ -208,6 +208,14 @@ def _wandb_run(logger):
     from torchrl.record.loggers.wandb import WandbLogger
 
     return logger.experiment if isinstance(logger, WandbLogger) else None
+
+
+def finish_logger(logger) -> None:
+    """End the wandb run behind ``logger`` (marked finished, its files flushed) when the run is over, rather than
+    at the process's exit; any other logger: nothing to do."""
+    run = _wandb_run(logger) if logger is not None else None
+    if run is not None:
+        run.finish()
 
 
 def _flat_numbers(record: dict, prefix: str = "") -> dict[str, float]:
