@@ -49,3 +49,16 @@ def test_saving_a_dataset_writes_its_metadata_through_the_one_writer(tmp_path, m
     assert written == ["metadata.json"] and outside.read_text() == "not yours"
     assert json.loads((folder / "metadata.json").read_text())["sizes"] == data.sizes()
     assert not (folder / "metadata.json.tmp").exists()
+
+
+def test_a_temporary_file_outside_the_files_folder_is_refused(tmp_path):
+    """``atomic_write``'s temporary file lies beside the file it replaces: a ``tmp`` elsewhere (``../``) is refused
+    before anything is created or removed there."""
+    from torchrl_wbrm._files import atomic_write
+
+    (tmp_path / "run").mkdir()
+    outside = tmp_path / "keep.txt"
+    outside.write_text("keep")
+    with pytest.raises(ValueError, match="must lie beside"):
+        atomic_write(tmp_path / "run" / "results.json", lambda f: f.write(b"{}"), tmp=tmp_path / "run" / ".." / "keep.txt")
+    assert outside.read_text() == "keep" and not (tmp_path / "run" / "results.json").exists()

@@ -102,6 +102,8 @@ def atomic_write(path: Path, write, *, tmp: Path | None = None) -> None:
     replaces a link at ``path`` itself, not its target."""
     path = Path(path)
     tmp = Path(tmp) if tmp is not None else path.with_name(path.name + ".tmp")
+    if os.path.realpath(tmp.parent) != os.path.realpath(path.parent) or tmp.name in ("", ".", ".."):
+        raise ValueError(f"atomic_write: the temporary file {tmp} must lie beside {path}, in its folder.")
     try:
         with create_fresh(tmp) as f:
             write(f)
