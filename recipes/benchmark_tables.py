@@ -339,6 +339,11 @@ def main(argv=None) -> None:
         made = (lambda t: few_demonstration_ids(t, args.namespace)["expert_pool"]) if few else (
             lambda t: benchmark_ids(t, args.namespace)["behaviour"])
         missing = [t for t in args.tasks if not (minari_data_root(data_path) / made(t)).exists()]
+        unmade = [t for t in missing if t in LOCOMOTION_DATASETS]  # hours of data: never made as a side effect
+        if unmade:
+            parser.error(f"--data-path {data_path}: no {made(unmade[0])} there (tasks {' '.join(unmade)}); make "
+                         f"the datasets with python -m torchrl_wbrm.data.benchmark --data-path {data_path} --tasks "
+                         f"{' '.join(unmade)}, or give the data path they were made in.")
         if missing:
             sizes = dict(expert_episodes=2, behaviour_episodes=10, reference_episodes=3) if args.quick else {}
             rows = make_benchmark(data_path, tasks=missing, namespace=args.namespace, **sizes)

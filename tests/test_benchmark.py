@@ -380,6 +380,25 @@ def test_few_demonstration_cells_of_a_locomotion_task():
         module.few_demonstration_cells(["pendulum"], [3], ["01"], ["wbrm"], Path("/data"), "benchmark")
 
 
+def test_missing_locomotion_datasets_are_refused_naming_the_command(tmp_path, capsys):
+    """A locomotion task whose datasets are not under ``--data-path`` is refused in one line naming the path and the
+    command that makes them; nothing is made or run."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "recipes" / "benchmark_tables.py"
+    spec = importlib.util.spec_from_file_location("benchmark_tables", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with pytest.raises(SystemExit):
+        module.main(["--few-demonstrations", "--tasks", "walker2d", "--expert-shares", "05", "--data-path",
+                     str(tmp_path), "--out", str(tmp_path / "out"), "--docs-dir", "none"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"--data-path {tmp_path}" in err and "benchmark/walker2d/expert-pool-v0" in err
+    assert "python -m torchrl_wbrm.data.benchmark" in err and "--tasks walker2d" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_the_share_plot_draws_a_line_per_method_against_the_expert_share(tmp_path):
     """``expert_share.png``: a panel per (task, S^e size), the expert's share of D on x, a line per method; the
     medium cells are left out of it, and each line holds the seeds' mean."""

@@ -246,6 +246,7 @@ def test_good_minari_data_pass_and_are_read_once_per_run(bad_data, monkeypatch):
     original = minari_data.read_minari_transitions
     monkeypatch.setattr(minari_data, "read_minari_transitions", lambda *a, **k: calls.append(1) or original(*a, **k))
     cfg = _config(bad_data, "good/expert-v0", "good/behaviour-v0")
+    cfg.cache = False  # every read of the episodes counted (the transitions cache has its own tests)
     check_minari_data(cfg, keep=True)
     assert len(calls) == 2
     datasets = make_minari_datasets(cfg)

@@ -30,7 +30,9 @@ gives ``dqn`` the ``n`` actions as its grid (:class:`OneHotActions`); the evalua
 
 Reading uses Minari's own reader (``MinariDataset.iterate_episodes``). torchrl's ``MinariExperienceReplay`` does the
 same conversion, but it reads only ids under ``MINARI_DATASETS_PATH`` and writes a second, memory-mapped copy of
-every dataset under its own cache folder; the datasets here are read once into memory, so it is not used.
+every dataset under its own cache folder; the datasets here are read once into memory, so it is not used. The
+transitions read are kept in the dataset's own ``data/`` folder for later runs (:func:`read_dataset_transitions`,
+``env.minari.cache``).
 
 :func:`write_minari_dataset` writes episodes as a Minari dataset through ``minari.create_dataset_from_buffers``
 with ``EpisodeBuffer`` objects, which needs only ``minari[hdf5]`` (``minari.DataCollector`` would need jax, the
@@ -52,9 +54,10 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_wbrm._files import atomic_write
 from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.datasets import (MAX_MAGNITUDE, HeldRead, OfflineDatasets, episode_returns, files_key,
-                                        min_behaviour_episodes)
+                                        first_non_finite_row, min_behaviour_episodes)
 
 __all__ = [
     "MinariDataConfig",
@@ -69,6 +72,8 @@ __all__ = [
     "check_new_minari_ids",
     "delete_minari_datasets",
     "read_minari_transitions",
+    "read_dataset_transitions",
+    "TRANSITIONS_CACHE",
     "write_minari_dataset",
     "transitions_to_episodes",
 ]
@@ -88,6 +93,11 @@ class MinariDataConfig:
         expert_episodes: how many of the expert dataset's episodes make ``S^e`` (``None``: all), drawn without
             replacement by the run's seed (:func:`draw_expert_episodes`), so each seed of a multi-seed run draws its
             own; more than the dataset holds is refused naming the key and the count.
+        cache: keep each dataset's transitions, once read and checked, in its ``data/`` folder
+            (:data:`TRANSITIONS_CACHE`), so later runs read one file instead of every episode again (a dataset of
+            40,000 short episodes takes about a minute and a half the first time, a second after). The cache is
+            used only while the dataset's own files are unchanged (sizes and modification times), loaded with
+            ``weights_only=True`` and checked again; a folder that cannot be written is read uncached.
     """
 
     expert: str = ""
@@ -96,6 +106,7 @@ class MinariDataConfig:
     ratio_fraction: float = 0.5
     data_path: Optional[str] = None
     expert_episodes: Optional[int] = None
+    cache: bool = True
 
 
 def minari_data_root(data_path: str | os.PathLike | None = None) -> Path:
@@ -386,6 +397,98 @@ def read_minari_transitions(dataset, *, episode_offset: int = 0, name: str | Non
     return torch.cat(parts, 0)
 
 
+#: the file, in a Minari dataset's ``data/`` folder, holding its transitions as read and checked
+#: (:func:`read_dataset_transitions`, ``env.minari.cache``)
+TRANSITIONS_CACHE = "torchrl_wbrm_transitions.pt"
+#: the layout of :data:`TRANSITIONS_CACHE`; a file of another is read again from the dataset
+_CACHE_FORMAT = 1
+
+
+def _dataset_files(data_dir: Path) -> list[Path]:
+    """The files of a Minari dataset's ``data/`` folder, its transitions cache (and the cache's temporary files)
+    left out."""
+    return sorted(p for p in Path(data_dir).rglob("*")
+                  if p.is_file() and not p.name.startswith(TRANSITIONS_CACHE))
+
+
+def _files_stamp(data_dir: Path) -> list[list]:
+    """Each file of the dataset as it is now: its name in the folder, its size and its modification time."""
+    data_dir = Path(data_dir)
+    return [[str(p.relative_to(data_dir)), p.stat().st_size, p.stat().st_mtime_ns] for p in _dataset_files(data_dir)]
+
+
+def _cached_transitions(path: Path, stamp: list, dataset) -> TensorDict | None:
+    """The transitions :data:`TRANSITIONS_CACHE` at ``path`` holds for the dataset's files as ``stamp`` describes
+    them, or ``None`` where it holds none, is of another layout or another version of the files, or does not hold
+    what a read of the dataset would (keys, shapes, dtypes, finite values, actions in the action space)."""
+    from gymnasium import spaces
+
+    try:
+        saved = torch.load(path, weights_only=True, mmap=True)
+    except Exception:  # noqa: BLE001 (a missing, truncated or foreign file: read the dataset instead)
+        return None
+    if not isinstance(saved, dict) or saved.get("format") != _CACHE_FORMAT or saved.get("files") != stamp:
+        return None
+    try:
+        rows = int(saved["rows"])
+        td = TensorDict(saved["transitions"], batch_size=[rows])
+    except Exception:  # noqa: BLE001
+        return None
+    expected = {"observation", "action", EPISODE, ("next", "observation"), ("next", "reward"), ("next", "done"),
+                ("next", "terminated"), ("next", "truncated")}
+    if set(td.keys(True, True)) != expected or rows <= 0:
+        return None
+    obs = int(np.prod(dataset.observation_space.shape))
+    action_space = dataset.action_space
+    actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape))
+    shapes = {"observation": (rows, obs), ("next", "observation"): (rows, obs), "action": (rows, actions),
+              EPISODE: (rows,), ("next", "reward"): (rows, 1), ("next", "done"): (rows, 1),
+              ("next", "terminated"): (rows, 1), ("next", "truncated"): (rows, 1)}
+    dtypes = {EPISODE: torch.int64, ("next", "done"): torch.bool, ("next", "terminated"): torch.bool,
+              ("next", "truncated"): torch.bool}
+    for key, shape in shapes.items():
+        value = td.get(key)
+        if tuple(value.shape) != shape or value.dtype != dtypes.get(key, torch.float32):
+            return None
+    if first_non_finite_row(td) is not None or int(td[EPISODE].numel()) != rows:
+        return None
+    if not isinstance(action_space, spaces.Discrete):
+        low = torch.tensor(np.broadcast_to(action_space.low, action_space.shape).reshape(-1), dtype=torch.float64)
+        high = torch.tensor(np.broadcast_to(action_space.high, action_space.shape).reshape(-1), dtype=torch.float64)
+        action = td["action"].double()
+        if bool(((action < low) | (action > high)).any()):
+            return None
+    return td
+
+
+def read_dataset_transitions(dataset, data_dir: str | os.PathLike, *, name: str | None = None,
+                             cache: bool = True) -> TensorDict:
+    """:func:`read_minari_transitions` of the Minari dataset in ``data_dir``, kept in that folder for the next read.
+
+    With ``cache``, a :data:`TRANSITIONS_CACHE` made from the dataset's files as they are now (each file's size and
+    modification time) is loaded instead of the episodes (``weights_only=True``) and checked again: its keys, shapes
+    and dtypes, finite values and actions in the action space; one of other files, or that fails a check, is read
+    again from the dataset and replaced. After a read, the transitions are written there atomically; a folder that
+    cannot be written leaves the dataset uncached (the read stands). Without ``cache`` nothing is read or written
+    but the dataset.
+    """
+    data_dir = Path(data_dir)
+    if not cache:
+        return read_minari_transitions(dataset, name=name)
+    path = data_dir / TRANSITIONS_CACHE
+    stamp = _files_stamp(data_dir)
+    held = _cached_transitions(path, stamp, dataset) if path.is_file() else None
+    if held is not None:
+        return held.clone()  # out of the mapped file: the caller may change its copy
+    td = read_minari_transitions(dataset, name=name)
+    saved = {"format": _CACHE_FORMAT, "files": stamp, "rows": td.batch_size[0], "transitions": td.to_dict()}
+    try:
+        atomic_write(path, lambda f: torch.save(saved, f), tmp=path.with_name(f"{path.name}.{os.getpid()}.tmp"))
+    except OSError:  # a read-only dataset folder: the read stands, uncached
+        pass
+    return td
+
+
 def _episodes_of(dataset, name: str):
     """``dataset.iterate_episodes()``, a file that cannot be read (a truncated HDF5) a one-line ``ValueError``."""
     episodes = iter(dataset.iterate_episodes())
@@ -415,7 +518,7 @@ def _read_pair(data: MinariDataConfig) -> tuple[tuple, tuple]:
     ``key``, which names the files as they are now), or a new one."""
     _check_given(data)
     paths = [resolve_minari_dataset(ref, data.data_path) for ref in (data.expert, data.behaviour)]
-    key = (tuple(str(p.resolve()) for p in paths), files_key(*paths))
+    key = (tuple(str(p.resolve()) for p in paths), files_key(*(f for p in paths for f in _dataset_files(p))))
     held = _HELD_PAIR.take(key)
     if held is not None:
         return key, held
@@ -438,8 +541,9 @@ def _read_pair(data: MinariDataConfig) -> tuple[tuple, tuple]:
     if None not in envs and envs[0] != envs[1]:
         raise ValueError(f"The Minari datasets come from different envs: expert {data.expert!r} from {envs[0]!r}, "
                          f"behaviour {data.behaviour!r} from {envs[1]!r}. Both must come from the same env.")
-    pair = (expert_ds, behaviour_ds, read_minari_transitions(expert_ds, name=names["expert"]),
-            read_minari_transitions(behaviour_ds, name=names["behaviour"]))
+    pair = (expert_ds, behaviour_ds,
+            read_dataset_transitions(expert_ds, paths[0], name=names["expert"], cache=data.cache),
+            read_dataset_transitions(behaviour_ds, paths[1], name=names["behaviour"], cache=data.cache))
     return key, pair
 
 
