@@ -75,9 +75,6 @@ class BufferBatches:
                 node = node.setdefault(part, {})
             node[last] = i
         self._batch_size = torch.Size([self.batch_size])
-        # the outputs were allocated with the batch's leading dimension on the batch's device: the TensorDict built
-        # around them needs no checks (TensorDict's own constructor checks every entry, 14 for D: a tenth of a step)
-        self._new = getattr(TensorDict, "_new_unsafe", None)
 
     def indices(self) -> torch.Tensor:
         """The next batch's indices: ``RandomSampler``'s own draw (its ``sample``) for a host batch."""
@@ -89,18 +86,12 @@ class BufferBatches:
         index = index.to(self.device)
         for source, out in zip(self._sources, self._outputs):
             torch.index_select(source, 0, index, out=out)
-        if self._new is None:
-            return TensorDict(dict(zip(self._keys, self._outputs)), batch_size=[self.batch_size], device=self.device)
-        return self._shell(self._tree)
+        return TensorDict(self._entries(self._tree), batch_size=self._batch_size, device=self.device)
 
-    def _shell(self, tree: dict) -> TensorDict:
-        """A fresh TensorDict over the output tensors, nested as ``tree``, on the batch's device (set after the
-        construction, which otherwise asks torch whether MPS is available for every new TensorDict)."""
+    def _entries(self, tree: dict) -> dict:
+        """The output tensors nested as ``tree`` (TensorDict's constructor nests the sub-dicts)."""
         outputs = self._outputs
-        entries = {name: outputs[node] if type(node) is int else self._shell(node) for name, node in tree.items()}
-        td = self._new(entries, batch_size=self._batch_size)
-        td._device = self.device
-        return td
+        return {name: outputs[node] if type(node) is int else self._entries(node) for name, node in tree.items()}
 
     def sample(self) -> TensorDict:
         return self.gather(self.indices())
