@@ -55,6 +55,13 @@ ALGOS = ("td3bc", "cql", "iql")
 LABELS = {"td3bc": "TD3+BC", "cql": "CQL", "iql": "IQL", "bc": "BC"}
 
 
+def _fragment_name(value: str) -> str:
+    """``--publish``: a fragment's name, lower-case letters, digits and ``_`` (it names a file in the docs)."""
+    if not value or not all(c.islower() or c.isdigit() or c == "_" for c in value):
+        raise argparse.ArgumentTypeError(f"{value!r}: lower-case letters, digits and '_' only (a docs fragment's name)")
+    return value
+
+
 # ---------------------------------------------------------------------- d3rlpy's side (runs in its own venv)
 def peer_train(data_path: str, algo: str, steps: int, seed: int, policy_path: str) -> dict:
     """Train d3rlpy's ``algo`` on the exported transitions; save its greedy policy (TorchScript). Runs in the
@@ -300,6 +307,10 @@ def main(argv=None) -> None:
                         help="train d3rlpy again even where its run on the same data, budget and seed is saved")
     parser.add_argument("--peer-worker", nargs=5, metavar=("DATA", "ALGO", "STEPS", "SEED", "POLICY"),
                         help=argparse.SUPPRESS)
+    parser.add_argument("--publish", default=None, metavar="NAME", type=_fragment_name,
+                        help="publish the table as the docs fragment results/_generated/NAME.md (a Minari "
+                             "comparison's, e.g. locomotion_peer; without it only LQR exp1's at the defaults is "
+                             "published, as peer_d3rlpy)")
     parser.add_argument("--docs-dir", default=None, metavar="PATH",  # the peer worker's venv has no torchrl_wbrm
                         help="the Sphinx docs folder that receives the table (results/_generated/peer_d3rlpy.md); "
                              "default: the clone's docs/; 'none': skip")
@@ -368,9 +379,9 @@ def main(argv=None) -> None:
                      f"{r['project_s_per_1k']:.1f} |")
     print("\n".join(lines))
     (out / "tables.md").write_text("\n".join(lines) + "\n")
-    if minari or args.no_peer or args.set:  # the published table is the LQR exp1 comparison at the defaults
+    if args.publish is None and (minari or args.no_peer or args.set):  # LQR exp1's at the defaults, unless named
         return
-    publish_study("peer_d3rlpy", out / "tables.md", docs_dir_from_args(args.docs_dir), seeds=seeds,
+    publish_study(args.publish or "peer_d3rlpy", out / "tables.md", docs_dir_from_args(args.docs_dir), seeds=seeds,
                   budget=", ".join(f"{r['steps']} updates ({LABELS[r['algo']]})" for r in rows) + " in both libraries",
                   ci=ci_words, argv=None if argv is None else [sys.argv[0], *argv])
 

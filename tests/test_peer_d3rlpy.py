@@ -63,3 +63,14 @@ def test_the_export_holds_what_each_algo_trains_on(tmp_path, single_thread, algo
     else:
         torch.testing.assert_close(torch.from_numpy(data["reward"]), source["next", "reward"])
         assert data["terminated"].shape == (n, 1)
+
+
+@pytest.mark.parametrize("name", ["../x", "a/b", "Locomotion", "", "x.md"])
+def test_a_fragment_name_that_is_not_a_plain_name_is_refused(name, capsys):
+    """``--publish NAME`` names a file in the docs: anything but lower-case letters, digits and '_' is refused in one
+    line before anything runs."""
+    with pytest.raises(SystemExit):
+        _peer().main(["--publish", name, "--no-peer", "--out", "/nonexistent/never-made"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--publish" in err and "lower-case letters, digits and '_' only" in err
+    assert not Path("/nonexistent/never-made").exists()
