@@ -227,3 +227,25 @@ def test_a_resume_with_other_settings_or_over_foreign_files_is_refused(tmp_path)
     with pytest.raises(ValueError, match="state.pt: not a run state"):
         locomotion.train_locomotion_expert(cfg, log=lambda line: None)
     assert not marker.exists()
+
+
+@needs_mujoco
+@pytest.mark.parametrize("how", ["expert", "eval_env"])
+def test_mujoco_warnings_leave_no_log_file_and_no_stdout_lines(tmp_path, how):
+    """HalfCheetah-v5's model makes MuJoCo warn at every ``gymnasium.make``; MuJoCo's own handler would print it on
+    stdout and append it to ``MUJOCO_LOG.TXT`` in the working directory. Loading an expert and making the evaluation
+    env route it to one Python warning instead: nothing is written where the process stands."""
+    import subprocess
+    import sys
+
+    code = {
+        "expert": "from torchrl_wbrm.policies.locomotion import load_locomotion_policy as f\n"
+                  "for _ in range(3): f('halfcheetah')\n",
+        "eval_env": "from torchrl_wbrm.data.minari_data import make_minari_eval_env as f\n"
+                    "f({'eval_env': 'HalfCheetah-v5'}, num_envs=3).close()\n",
+    }[how]
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []  # no MUJOCO_LOG.TXT
+    assert "WARNING" not in proc.stdout
+    assert proc.stderr.count("MuJoCo: compiler attribute 'settotalmass'") == 1

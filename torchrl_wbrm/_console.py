@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import os
 
-__all__ = ["CHATTY_LOGGERS", "quiet_libraries"]
+__all__ = ["CHATTY_LOGGERS", "quiet_libraries", "route_mujoco_warnings"]
 
 #: Loggers whose INFO lines (storage initialisation and the like) are silenced unless asked for.
 CHATTY_LOGGERS = ("torchrl", "tensordict", "minari", "h5py")
@@ -32,3 +32,23 @@ def quiet_libraries(verbose: bool | None = None) -> None:
         logger.setLevel(level)
         for handler in logger.handlers:  # torchrl's own console handler takes RL_LOGGING_LEVEL too
             handler.setLevel(level)
+
+
+def _mujoco_warning(message: str) -> None:
+    import warnings
+
+    warnings.warn(f"MuJoCo: {' '.join(message.split())}", RuntimeWarning, stacklevel=2)
+
+
+def route_mujoco_warnings() -> None:
+    """MuJoCo's warnings as Python ``RuntimeWarning``s (``mujoco.set_mju_user_warning``), where MuJoCo is installed
+    and no handler is set yet. Its default handler prints each warning on stdout and appends it to
+    ``MUJOCO_LOG.TXT`` in the working directory, a file outside any folder a command was given (``HalfCheetah-v5``'s
+    model warns at every ``gymnasium.make``, so a run's evaluations wrote hundreds of lines there). Python's warning
+    filters then show each message once per place."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_mujoco_warning)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchrl_wbrm._console import route_mujoco_warnings
 from torchrl_wbrm.data.minari_data import check_new_minari_ids, write_minari_dataset
 from torchrl_wbrm.data.minari_examples import collect_gym_episodes
 
@@ -215,6 +216,7 @@ def make_locomotion_task(name: str, data_path, *, seed: int = 0, namespace: str 
 
     import gymnasium as gym
 
+    route_mujoco_warnings()
     env = gym.make(task.env_id)
     low, high = env.action_space.low.astype(np.float32), env.action_space.high.astype(np.float32)
     env.close()

@@ -54,6 +54,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_wbrm._console import route_mujoco_warnings
 from torchrl_wbrm._files import atomic_write
 from torchrl_wbrm.keys import EPISODE
 from torchrl_wbrm.data.datasets import (MAX_MAGNITUDE, HeldRead, OfflineDatasets, episode_returns, files_key,
@@ -504,6 +505,22 @@ def _episodes_of(dataset, name: str):
         yield episode
 
 
+def _make_gym_env(spec):
+    """``gymnasium.make(spec)`` (an id or an ``EnvSpec``), a MuJoCo env's warnings routed to Python's
+    (:func:`~torchrl_wbrm._console.route_mujoco_warnings`: nothing is written to ``MUJOCO_LOG.TXT``)."""
+    import gymnasium as gym
+
+    entry = getattr(spec, "entry_point", None)
+    if entry is None and isinstance(spec, str):
+        try:
+            entry = gym.spec(spec).entry_point
+        except gym.error.Error:  # an unknown id: gymnasium.make says so below
+            entry = None
+    if isinstance(entry, str) and "mujoco" in entry:
+        route_mujoco_warnings()
+    return gym.make(spec)
+
+
 def _space_text(space) -> str:
     return repr(space)
 
@@ -631,7 +648,7 @@ def check_eval_env(data: MinariDataConfig, expert_ds, behaviour_ds, expert: Tens
     where = (f"env.minari.eval_env={data.eval_env}" if data.eval_env
              else f"the evaluation env {env_id!r} the Minari datasets record")
     try:
-        genv = gym.make(EnvSpec.from_json(recorded) if recorded else env_id)
+        genv = _make_gym_env(EnvSpec.from_json(recorded) if recorded else env_id)
     except Exception as err:  # noqa: BLE001 (gymnasium's Error for an unknown id, a missing simulator, ...)
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ValueError(f"{where}: the env cannot be made ({type(err).__name__}: {first}); pass "
@@ -870,7 +887,7 @@ def make_minari_eval_env(metadata: dict, *, seed: int | None = None, num_envs: i
     action_shape = metadata.get("action_shape")
 
     def make_one():
-        genv = gym.make(spec)
+        genv = _make_gym_env(spec)
         if action_shape is not None:
             if not isinstance(genv.action_space, gym.spaces.Box) or list(genv.action_space.shape) != list(action_shape):
                 raise ValueError(f"The evaluation env {env_id!r} has the action space {genv.action_space}, the Minari "

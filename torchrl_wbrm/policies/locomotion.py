@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchrl_wbrm._console import route_mujoco_warnings
 from torchrl_wbrm._files import atomic_write
 
 __all__ = [
@@ -113,6 +114,7 @@ def load_locomotion_policy(task: str, level: str = "expert", path: str | Path | 
     except Exception as exc:  # noqa: BLE001 - unpickling errors come in many types; all mean "not our weights"
         raise ValueError(f"{path}: not a policy's weights ({type(exc).__name__}: {str(exc).splitlines()[0]}).") \
             from None
+    route_mujoco_warnings()
     env = gym.make(env_id)
     obs_dim, action_dim = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
     env.close()
@@ -133,6 +135,7 @@ def evaluate_policy(actor: LocomotionActor, env_id: str, episodes: int, seed: in
     gymnasium vector env (one reset seed per episode, ``seed + i``)."""
     import gymnasium as gym
 
+    route_mujoco_warnings()
     envs = gym.vector.SyncVectorEnv([lambda: gym.make(env_id) for _ in range(episodes)],
                                     autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     obs, _ = envs.reset(seed=[seed + i for i in range(episodes)])
@@ -246,6 +249,8 @@ def train_locomotion_expert(cfg: _TrainConfig, log=print) -> dict:
     if state is None and (any(cfg.out.glob(f"{cfg.task}-*.pt")) or (cfg.out / f"{cfg.task}-log.json").exists()):
         raise FileExistsError(f"{cfg.out} holds {cfg.task} checkpoints but no {_STATE} to continue from; give "
                               f"another --out.")
+
+    route_mujoco_warnings()
 
     def make_env():
         return TransformedEnv(GymEnv(env_id), Compose(DoubleToFloat()))
