@@ -271,7 +271,7 @@ def test_foreach_soft_update_is_bitwise_torchrl_soft_update():
     assert sa.keys() == sb.keys()
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     # the actor's fixed bounds (buffers) are not "updated", as in torchrl
-    assert len(ub._slots()) == len(ua._sources.keys(True, True))
+    assert len(ub._pairs()) == len(ua._sources.keys(True, True))
 
 
 def test_adam_options_fused_on_cpu_params_only():
