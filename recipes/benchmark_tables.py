@@ -169,8 +169,9 @@ def few_demonstrations_report(out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: the paired differences the few-demonstration table reports: (method, against)
-PAIRS = (("wbrm", "brm"), ("wbrm", "bc"), ("brm", "bc"))
+#: the paired differences the few-demonstration table reports: (method, against); the last is the ratio's other use,
+#: D's expert-like episodes (as stage 1's ŵ ranks them) cloned beside S^e
+PAIRS = (("wbrm", "brm"), ("wbrm", "bc"), ("brm", "bc"), ("bc_expert_like", "bc"))
 
 
 def paired_differences(rows: dict[tuple, list[dict]]) -> list[str]:

@@ -83,9 +83,9 @@ def test_the_doctests_pass(sphinx, doctrees, tmp_path):
 
 STUDIES = ["paper_tables", "weighting_study", "q_accuracy_study", "ablations", "convergence", "benchmark",
            "peer_d3rlpy", "few_demonstrations", "misspecified_q", "offline_value", "offline_value_validation",
-           "locomotion"]
+           "locomotion", "locomotion_peer"]
 #: the results page of a fragment whose page is named otherwise
-PAGES = {"offline_value_validation": "offline_value"}
+PAGES = {"offline_value_validation": "offline_value", "locomotion_peer": "locomotion"}
 
 
 @pytest.mark.parametrize("study", STUDIES)
