@@ -636,7 +636,6 @@ def check_eval_env(data: MinariDataConfig, expert_ds, behaviour_ds, expert: Tens
     than the data's longest episode (its returns would be of shorter episodes than the data's). The env is
     ``env.minari.eval_env``, else the one the datasets record (nothing is checked when neither names one). One line
     naming the env, the setting and what differs."""
-    import gymnasium as gym
     from gymnasium import spaces
 
     from gymnasium.envs.registration import EnvSpec

@@ -35,7 +35,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import EnvBase
 
 from torchrl_wbrm.envs._batched import BatchedEpisodicEnv
 
