@@ -63,7 +63,7 @@ def test_a_changed_dataset_is_read_again(behaviour, monkeypatch):
     assert len(reads) == 2
 
 
-@pytest.mark.parametrize("damage", ["nan", "action", "shape", "truncated", "pickle"])
+@pytest.mark.parametrize("damage", ["nan", "action", "observation", "shape", "truncated", "pickle"])
 def test_a_tampered_or_foreign_cache_is_never_trusted(behaviour, monkeypatch, damage, tmp_path):
     ds = MinariDataset(str(behaviour))
     truth = read_dataset_transitions(ds, behaviour)
@@ -73,9 +73,11 @@ def test_a_tampered_or_foreign_cache_is_never_trusted(behaviour, monkeypatch, da
         saved["transitions"]["next"]["reward"][3, 0] = float("nan")
     elif damage == "action":
         saved["transitions"]["action"][5, 0] = 7.0  # outside the Box [-1, 1]
+    elif damage == "observation":
+        saved["transitions"]["observation"][2, 0] = 100.0  # far outside MountainCar's position box [-1.2, 0.6]
     elif damage == "shape":
         saved["transitions"]["observation"] = saved["transitions"]["observation"][:, :1].clone()
-    if damage in ("nan", "action", "shape"):
+    if damage in ("nan", "action", "observation", "shape"):
         torch.save(saved, path)
     elif damage == "truncated":
         path.write_bytes(path.read_bytes()[:100])

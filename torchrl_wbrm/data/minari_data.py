@@ -95,8 +95,8 @@ class MinariDataConfig:
             replacement by the run's seed (:func:`draw_expert_episodes`), so each seed of a multi-seed run draws its
             own; more than the dataset holds is refused naming the key and the count.
         cache: keep each dataset's transitions, once read and checked, in its ``data/`` folder
-            (:data:`TRANSITIONS_CACHE`), so later runs read one file instead of every episode again (a dataset of
-            40,000 short episodes takes about a minute and a half the first time, a second after). The cache is
+            (:data:`TRANSITIONS_CACHE`), so later runs read one file instead of every episode again (the Minari
+            tutorial gives the times). The cache is
             used only while the dataset's own files are unchanged (sizes and modification times), loaded with
             ``weights_only=True`` and checked again; a folder that cannot be written is read uncached.
     """
@@ -277,6 +277,11 @@ def _first_too_large(values: np.ndarray) -> int | None:
     return int(np.argmax(big)) if big.any() else None
 
 
+def _flat_bounds(space) -> tuple[np.ndarray, np.ndarray]:
+    """A ``Box``'s ``low`` and ``high``, broadcast to its shape and read flat (row-major), as float64."""
+    return tuple(np.broadcast_to(bound, space.shape).reshape(-1).astype(np.float64) for bound in (space.low, space.high))
+
+
 def _check_observation_range(observations: np.ndarray, space, name: str, episode: int) -> None:
     """Refuse observations far outside the dataset's declared observation ``space`` (a ``Box``): beyond its finite
     bounds by more than the bounds' own width (a gross mismatch, such as observations recorded 100× the env's scale),
@@ -285,8 +290,7 @@ def _check_observation_range(observations: np.ndarray, space, name: str, episode
 
     if not isinstance(space, spaces.Box) or observations.dtype.kind not in "fiu" or not observations.size:
         return
-    low = np.broadcast_to(space.low, space.shape).reshape(-1).astype(np.float64)
-    high = np.broadcast_to(space.high, space.shape).reshape(-1).astype(np.float64)
+    low, high = _flat_bounds(space)
     flat = observations.reshape(observations.shape[0], -1).astype(np.float64)
     if flat.shape[1] != low.size:
         return  # the shape is refused by the reader, naming it
@@ -343,8 +347,7 @@ def _check_episode(episode, action_space, name: str) -> None:
             raise ValueError(f"{where}: actions of shape {actions.shape[1:]} for the action space {action_space}; "
                              f"{size} number(s) per step are expected.")
         flat = actions.reshape(steps, size).astype(np.float64)
-        low = np.broadcast_to(action_space.low, action_space.shape).reshape(size).astype(np.float64)
-        high = np.broadcast_to(action_space.high, action_space.shape).reshape(size).astype(np.float64)
+        low, high = _flat_bounds(action_space)
         outside = ((flat < low) | (flat > high)).any(-1)
     if outside.any():
         step = int(np.argmax(outside))
@@ -413,9 +416,10 @@ def _dataset_files(data_dir: Path) -> list[Path]:
 
 
 def _files_stamp(data_dir: Path) -> list[list]:
-    """Each file of the dataset as it is now: its name in the folder, its size and its modification time."""
-    data_dir = Path(data_dir)
-    return [[str(p.relative_to(data_dir)), p.stat().st_size, p.stat().st_mtime_ns] for p in _dataset_files(data_dir)]
+    """Each file of the dataset as it is now (:func:`files_key`), named within its folder (a moved dataset keeps its
+    cache)."""
+    data_dir = Path(data_dir).resolve()
+    return [[str(Path(f).relative_to(data_dir)), size, mtime] for f, size, mtime in files_key(*_dataset_files(data_dir))]
 
 
 def _cached_transitions(path: Path, stamp: list, dataset) -> TensorDict | None:
@@ -451,14 +455,17 @@ def _cached_transitions(path: Path, stamp: list, dataset) -> TensorDict | None:
         value = td.get(key)
         if tuple(value.shape) != shape or value.dtype != dtypes.get(key, torch.float32):
             return None
-    if first_non_finite_row(td) is not None or int(td[EPISODE].numel()) != rows:
+    if first_non_finite_row(td) is not None:
         return None
     if not isinstance(action_space, spaces.Discrete):
-        low = torch.tensor(np.broadcast_to(action_space.low, action_space.shape).reshape(-1), dtype=torch.float64)
-        high = torch.tensor(np.broadcast_to(action_space.high, action_space.shape).reshape(-1), dtype=torch.float64)
+        low, high = (torch.from_numpy(bound) for bound in _flat_bounds(action_space))
         action = td["action"].double()
         if bool(((action < low) | (action > high)).any()):
             return None
+    try:  # observations far outside the declared space, as the episodes' read refuses them
+        _check_observation_range(td["observation"].numpy(), dataset.observation_space, "", 0)
+    except ValueError:
+        return None
     return td
 
 
@@ -699,8 +706,7 @@ def make_minari_datasets(data: MinariDataConfig, *, seed: int = 0, storage: str 
     if isinstance(action_space, spaces.Discrete):
         low, high, discrete = [0.0] * int(action_space.n), [1.0] * int(action_space.n), int(action_space.n)
     else:
-        low = np.broadcast_to(action_space.low, action_space.shape).astype(float).reshape(-1).tolist()
-        high = np.broadcast_to(action_space.high, action_space.shape).astype(float).reshape(-1).tolist()
+        low, high = (bound.tolist() for bound in _flat_bounds(action_space))
         discrete = None
     metadata = {
         "env": "minari",

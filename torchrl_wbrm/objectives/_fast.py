@@ -123,9 +123,7 @@ class NetworkCall:
             if isinstance(params, dict):  # dotted names -> tensors (named_tensors)
                 slots = self.slots
                 for name, value in params.items():
-                    container, attr = slots[name]
-                    saved.append((container, attr, container[attr]))
-                    container[attr] = value.detach() if detach and value is not None else value
+                    _swap(slots[name], value, saved, detach)
             else:  # the TensorDict the parameters hold now (the one to_module put in, if any), level by level
                 _install(self.tree, params, saved, detach)
             return self.module(*[inputs[key] for key in self.in_keys])
@@ -154,9 +152,15 @@ def _install(tree: dict, params, saved: list, detach: bool) -> None:
         if type(slot) is dict:
             _install(slot, value, saved, detach)
             continue
-        container, attr = slot
-        saved.append((container, attr, container[attr]))
-        container[attr] = value.detach() if detach and value is not None else value
+        _swap(slot, value, saved, detach)
+
+
+def _swap(slot: tuple, value, saved: list, detach: bool) -> None:
+    """Put ``value`` (detached with ``detach``) into the module slot ``(container, attr)``, recording the slot's
+    previous value in ``saved``."""
+    container, attr = slot
+    saved.append((container, attr, container[attr]))
+    container[attr] = value.detach() if detach and value is not None else value
 
 
 def named_tensors(params) -> dict:
