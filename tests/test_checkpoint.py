@@ -4,8 +4,8 @@ a run killed at any point resumes to the uninterrupted run's figures.
 A crafted pickle in a run directory that otherwise looks like a real run is refused, in one line naming the file,
 by the trainer and by the recipe, and what its unpickling would do (create a marker file) never happens; so is a
 run record (``.hydra/overrides.yaml``) that names anything but the recipe's own settings. A real
-checkpoint (every algo's) holds only what such a load accepts, and resumes exactly; so does one whose NumPy random
-state is the array ``np.random.get_state()`` returns.
+checkpoint (every algo's) holds only what such a load accepts, and resumes exactly; one holding a NumPy array (its
+random state as ``np.random.get_state()`` returns it) is refused.
 
 A run killed with SIGKILL (nothing caught, nothing flushed) and resumed with the recipe's resume command ends with
 the figures of the uninterrupted run, exactly.
@@ -172,22 +172,23 @@ def test_a_resumed_checkpoint_ends_as_the_uninterrupted_run(tmp_path):
     assert resumed["final"] == whole["final"] and resumed["ratio"] == whole["ratio"]
 
 
-def test_a_checkpoint_holding_numpys_random_state_array_resumes_exactly(tmp_path):
-    """The NumPy state as ``np.random.get_state()`` returns it (an ``uint32`` array) is read too, and restored."""
+def test_a_checkpoint_holding_a_numpy_array_is_refused_in_one_line_and_nothing_in_it_is_built(tmp_path):
+    """The random states are saved as tensors and primitives only; a checkpoint holding a NumPy array (here NumPy's
+    random state as ``np.random.get_state()`` returns it) names a global, so it is refused unread, in one line."""
     cut = WBRMTrainer(tiny(), tmp_path, progress=False)
     assert cut.run(until=15) is None
     path = tmp_path / "checkpoint.pt"
     sd = torch.load(path, weights_only=True)
     state = sd["rng"]["numpy"]
+    assert isinstance(state["keys"], torch.Tensor)  # what a run writes: a tensor
     sd["rng"]["numpy"] = (state["name"], state["keys"].numpy().astype(np.uint32), state["pos"], state["has_gauss"],
                           state["cached_gaussian"])
     torch.save(sd, path)
-    assert torch.serialization.get_unsafe_globals_in_checkpoint(path)  # NumPy's array, not a plain tensor
-    resumed = WBRMTrainer(tiny(), tmp_path, progress=False, resume=True)
-    assert resumed.state == {"stage": "q", "step": 15}
-    expected = np.random.RandomState()
-    expected.set_state(sd["rng"]["numpy"])
-    assert np.random.random() == expected.random_sample()
+    with pytest.raises(RuntimeError) as err:
+        WBRMTrainer(tiny(), tmp_path, progress=False, resume=True)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and "not a checkpoint this project wrote" in message
+    assert "_reconstruct" in message  # the global it would import, named
 
 
 # ---------------------------------------------------------------------- SIGKILL, then the resume command

@@ -156,6 +156,8 @@ def test_store_in_a_replay_buffer_under_a_chosen_key_with_shaping(storage, key):
         net.module.mlp[-1].weight.mul_(30.0)  # a spread-out ratio, so that the shaping matters
     data = _samples(200, BEHAVIOUR_STD, 5)
     data["row"] = torch.arange(200)
+    if storage is LazyMemmapStorage:  # a locked storage takes no new entry: the data hold it from the first extend
+        data[key] = torch.zeros(200)
     rb = _buffer(data, storage)
     stored = store_density_ratio(rb, ratio_network=net, key=key, temper=0.5, clip=3.0, mix=0.1)
     raw = compute_density_ratio(net, data)
@@ -287,10 +289,13 @@ def test_stored_weights_follow_their_rows(storage):
     from torchrl_wbrm.ratio import MissingWeightsError
 
     rb = TensorDictReplayBuffer(storage=storage(12), batch_size=12)
-    rb.extend(_samples(10, BEHAVIOUR_STD, 8))
+    first = _samples(10, BEHAVIOUR_STD, 8)
+    if storage is LazyMemmapStorage:  # a locked storage takes no new entry: the data hold it from the first extend
+        first["density_ratio"] = torch.zeros(10)
+    rb.extend(first)
     store_density_ratio(rb, torch.arange(1.0, 11.0), self_normalise=False)
     rb.extend(_samples(4, BEHAVIOUR_STD, 9))  # rows 10, 11, 0, 1
-    stored = rb.storage._storage["density_ratio"]
+    stored = rb.storage[:]["density_ratio"]
     assert torch.isnan(stored[[0, 1, 10, 11]]).all()
     torch.testing.assert_close(torch.as_tensor(stored[2:10]), torch.arange(3.0, 11.0))
     with pytest.raises(MissingWeightsError, match="hold no stored weight under 'density_ratio'.*store_density_ratio"):
@@ -300,8 +305,22 @@ def test_stored_weights_follow_their_rows(storage):
     own = _samples(2, BEHAVIOUR_STD, 10)
     own["density_ratio"] = torch.tensor([5.0, 7.0])
     rb.extend(own)  # rows 2, 3
-    torch.testing.assert_close(torch.as_tensor(rb.storage._storage["density_ratio"][2:4]), torch.tensor([5.0, 7.0]))
-    assert len(rb._transform) == 1  # storing again added no second transform
+    torch.testing.assert_close(torch.as_tensor(rb.storage[:]["density_ratio"][2:4]), torch.tensor([5.0, 7.0]))
+    assert len(rb.transform) == 1  # storing again added no second transform
+
+
+def test_a_locked_storage_without_the_entry_is_refused_in_one_line_and_keeps_its_rows():
+    """A memory-mapped storage is locked: torchrl drops a new entry from its writes, so storing weights there is
+    refused, naming the storage, the key and the fix, and nothing is written."""
+    rb = TensorDictReplayBuffer(storage=LazyMemmapStorage(12), batch_size=4)
+    rb.extend(_samples(10, BEHAVIOUR_STD, 8))
+    before = rb.storage[:].clone()
+    with pytest.raises(ValueError, match=r"^The replay buffer's LazyMemmapStorage is locked .* no 'density_ratio' "
+                                         r"entry.*before the first extend") as err:
+        store_density_ratio(rb, torch.ones(10))
+    assert "\n" not in str(err.value)
+    assert (rb.storage[:] == before).all() and "density_ratio" not in rb.storage[:].keys()
+    assert len(rb.transform) == 0
 
 
 def test_a_ratio_network_of_other_dimensions_is_refused_in_one_line():

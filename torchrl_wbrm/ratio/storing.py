@@ -22,7 +22,7 @@ from __future__ import annotations
 import warnings
 
 import torch
-from tensordict import MemoryMappedTensor, TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
@@ -100,7 +100,7 @@ class StoredWeightsFollowRows(Transform):
 
 def _follow_rows(buffer: ReplayBuffer, key: NestedKey, row_shape: torch.Size, dtype: torch.dtype) -> None:
     """Append :class:`StoredWeightsFollowRows` for ``key`` to ``buffer`` unless it already has one."""
-    transform = getattr(buffer, "_transform", None)
+    transform = buffer.transform
     existing = list(transform) if transform is not None else []
     if any(isinstance(t, StoredWeightsFollowRows) and t.key == key for t in existing):
         return
@@ -173,8 +173,9 @@ def store_density_ratio(
 
     Args:
         target: a TensorDict (the entry is set on it) or a torchrl replay buffer over a 1-d ``TensorStorage``
-            (``LazyTensorStorage``, ``LazyMemmapStorage``): the entry is added to its storage, so every later
-            ``sample()`` carries it.
+            (``LazyTensorStorage``, ``LazyMemmapStorage``): the entry is added to its storage (a memory-mapped,
+            locked storage takes no new entry, as in torchrl: one that lacks ``key`` is refused, and one that holds
+            it has it overwritten in place), so every later ``sample()`` carries it.
         weights (Tensor, optional): raw weights, one per row (e.g. an exact ratio). Without them ``ratio_network``
             is run over ``target`` (:func:`compute_density_ratio`).
 
@@ -265,20 +266,10 @@ def store_density_ratio(
         stored[:n] = w.to(stored.dtype).reshape(stored[:n].shape)
         _follow_rows(target, key, stored.shape[1:], stored.dtype)
         return w
+    if storage[:].is_locked:  # a memory-mapped storage takes no new entry (torchrl drops one from its writes)
+        raise ValueError(f"The replay buffer's {type(storage).__name__} is locked (memory-mapped) and holds no "
+                         f"{key!r} entry, and a locked storage takes no new one: put the entry in the data before the "
+                         f"first extend (e.g. data[{key!r}] = torch.ones(len(data))), then store the weights over it.")
     _follow_rows(target, key, w.shape[1:], w.dtype)
-    # a new entry: torchrl has no public way to add one to a storage (storage[rows] = ... fills it with zeros, or
-    # drops it on a locked storage), so it is set on the storage's TensorDict itself
-    data = storage._storage
-    full = torch.full((data.shape[0], *w.shape[1:]), float("nan"), dtype=w.dtype)  # rows not written yet: none
-    full[:n] = w
-    locked = data.is_locked
-    if locked:  # a memory-mapped storage: the new entry is memory-mapped too
-        data.unlock_()
-        full = MemoryMappedTensor.from_tensor(full)
-    try:
-        data.set(key, full.to(data.device) if data.device is not None and not locked else full)
-    finally:
-        if locked:
-            data.lock_()
-            storage._storage_keys = None  # the storage caches a locked storage's keys: let writes reach the new one
+    storage.set(slice(0, n), TensorDict({key: w}, batch_size=[n]), set_cursor=False)  # a new entry, rows 0..n-1
     return w

@@ -52,13 +52,11 @@ def get_rng_state() -> dict:
 
 
 def set_rng_state(state: dict) -> None:
-    """Restore :func:`get_rng_state`'s states (NumPy's also from the tuple ``np.random.get_state()`` returns)."""
+    """Restore :func:`get_rng_state`'s states."""
     torch.set_rng_state(state["torch"])
     numpy_state = state["numpy"]
-    if isinstance(numpy_state, dict):
-        numpy_state = (numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
-                       numpy_state["has_gauss"], numpy_state["cached_gaussian"])
-    np.random.set_state(numpy_state)
+    np.random.set_state((numpy_state["name"], numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
+                         numpy_state["has_gauss"], numpy_state["cached_gaussian"]))
     random.setstate(state["python"])
     if "cuda" in state:
         if not torch.cuda.is_available() or torch.cuda.device_count() < len(state["cuda"]):
@@ -125,14 +123,6 @@ def restore_training_state(sd: dict, path: Path, *, data_fingerprint: str, q_los
                                       "best": sd["ratio_best"], "num_steps": sd.get("ratio_steps", 0)})
 
 
-def _numpy_array_globals() -> list:
-    """NumPy's array reconstruction, allowed to :func:`read_checkpoint`'s restricted unpickler for the one thing a
-    checkpoint of an older version holds beyond tensors and primitives: NumPy's random state (an ``uint32`` array).
-    These build an array from its bytes and dtype; nothing they touch runs code."""
-    multiarray = getattr(np, "_core", None) or np.core
-    return [multiarray.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
-
-
 def _pickle_globals(path: Path) -> list[str]:
     """The globals (``module.name``) a pickle file would import when read, listed from its opcodes without running
     any (``torch.save``'s zip archive, or a bare pickle); ``[]`` when they cannot be listed."""
@@ -159,8 +149,7 @@ def _foreign_pickle(path: Path, err: Exception) -> str | None:
     """What the file ``path`` refused by ``torch.load(weights_only=True)`` would do that a checkpoint never does (the
     globals it would import, or a pickle opcode ``torch.save`` does not write), or ``None`` when the refusal is damage
     (bytes that are no pickle opcode)."""
-    allowed = {f"{g.__module__}.{g.__qualname__}" for g in _numpy_array_globals()}
-    names = [n for n in _pickle_globals(path) if n not in allowed]
+    names = _pickle_globals(path)
     found = re.search(r"Unsupported global: GLOBAL (\S+)", str(err))
     if found or names:
         return f"it would import {', '.join(names or [found.group(1)])} when read"
@@ -180,14 +169,14 @@ def _first_line(err: Exception) -> str:
 
 def read_checkpoint(path: Path) -> dict:
     """A checkpoint, read with ``torch.load(weights_only=True)``: only tensors, primitives and containers of them
-    (and an older checkpoint's NumPy random state) are built, so reading a file never runs code it names. A file that
+    are built, so reading a file never runs code it names. A file that
     names anything else (a crafted pickle) is refused, unread, as not a checkpoint this project wrote; a damaged one
     is a ``RuntimeError`` naming the file. Both are one line."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Cannot resume: no {path.name} in {path.parent}.")
     try:
-        with warnings.catch_warnings(), torch.serialization.safe_globals(_numpy_array_globals()):
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # torch's note on a pickle protocol it did not write
             sd = torch.load(path, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as err:
