@@ -254,6 +254,27 @@ def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(ba
                                                batches[m if batch_per_member else 0].clone())
 
 
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_a_batch_shared_by_a_vmap_ensemble_is_checked_and_a_batched_one_is_not_read_back(fast_path):
+    """Inside ``torch.vmap`` over the parameters only (TorchRL's ensemble idiom) the batch is a plain tensor: its
+    value checks run, so a NaN reward is refused by name as outside vmap. A batch mapped by vmap cannot be read back:
+    its value checks are skipped and the loss is computed (the NaN reaches the loss, as with ``check_inputs=False``)."""
+    members = [_member_loss(100 + m) for m in range(2)]
+    host = _member_loss(0)
+    host.fast_path = fast_path
+
+    def call(params, batch):
+        with params.to_module(host):
+            return host(batch)["loss_value"]
+
+    bad = _continuous_batch(3)
+    bad["next", "reward"][2] = float("nan")
+    with pytest.raises(ValueError, match=r"^Entry \('next', 'reward'\) .*finite"):
+        torch.vmap(call, (0, None), randomness=host.vmap_randomness)(_stacked(members), bad.clone())
+    value = torch.vmap(call, (0, 0), randomness=host.vmap_randomness)(_stacked(members), torch.stack([bad, bad]))
+    assert value.shape == (2,) and torch.isnan(value).all()
+
+
 @pytest.mark.parametrize("kwargs", [{}, {"num_qvalue_nets": 2}])
 @pytest.mark.parametrize("fast_path", [True, False])
 def test_params_to_module_without_vmap_computes_with_the_installed_parameters(fast_path, kwargs):

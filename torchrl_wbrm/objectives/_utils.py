@@ -19,14 +19,16 @@ class NonFiniteError(ValueError):
         self.key = key
 
 
-def checks_run(enabled: bool) -> bool:
-    """Whether a loss's data-dependent input checks (finite values, signs, index ranges: each a host read) run now:
-    ``enabled`` (the loss's public ``check_inputs`` switch), and neither inside ``torch.compile`` (the read would
-    break the graph) nor inside a functorch transform (``torch.vmap``, ``torch.func.grad``: a batched tensor cannot
-    be read back). Shape, key and dtype checks need no host read and always run."""
+def checks_run(enabled: bool, value: torch.Tensor | None) -> bool:
+    """Whether a loss's data-dependent input checks (finite values, signs, index ranges: each a host read) run now on
+    ``value``, a tensor they read (``None``: absent, so nothing is read back): ``enabled`` (the loss's public
+    ``check_inputs`` switch), not inside ``torch.compile`` (the read would break the graph), and ``value`` not
+    wrapped by a functorch transform (batched by ``torch.vmap``, or differentiated by ``torch.func.grad``: such a
+    tensor cannot be read back). The batch of a ``torch.vmap`` over parameters only (TorchRL's ensemble idiom) is
+    plain, so it is checked there too. Shape, key and dtype checks need no host read and always run."""
     if not enabled or torch.compiler.is_compiling():
         return False
-    return torch._C._functorch.peek_interpreter_stack() is None
+    return value is None or torch.func.debug_unwrap(value, recurse=False) is value
 
 
 def check_reduction(reduction: str | None) -> str:

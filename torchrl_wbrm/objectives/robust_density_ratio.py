@@ -213,7 +213,7 @@ class RobustDensityRatioLoss(LossModule):
         width, dtype = self._network_facts()
         check_input_width(width, named, samples.batch_size, "ratio network")
         check_input_dtype(dtype, named, "ratio network")
-        run_checks = checks_run(self.check_inputs)
+        run_checks = checks_run(self.check_inputs, tensors[0] if tensors else None)
         if run_checks:
             for k, t in named.items():
                 check_finite(t, k)
@@ -224,7 +224,7 @@ class RobustDensityRatioLoss(LossModule):
                 f"The ratio network wrote {key!r} with shape {tuple(w.shape)} on {name!r} samples of batch size "
                 f"{tuple(samples.batch_size)}; expected {tuple(samples.batch_size)} or {(*samples.batch_size, 1)}."
             )
-        if run_checks:
+        if checks_run(self.check_inputs, w):  # the output: batched where the parameters are
             check_sign(w, key, strictly_positive=True)
         return w.reshape(samples.batch_size)
 

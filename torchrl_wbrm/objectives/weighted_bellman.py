@@ -605,7 +605,7 @@ class WeightedBellmanLoss(LossModule):
             return None
         return per_sample_weight(
             tensordict, self.tensor_keys.weight, dtype=self._network_facts()[1],
-            check_weight=check and checks_run(self.check_inputs),
+            check_weight=check and checks_run(self.check_inputs, tensordict.get(self.tensor_keys.weight, None)),
             why="the per-sample weight ŵ(x, a): write the ratio network's output there, or build the loss with "
                 "use_weights=False",
         )
@@ -616,7 +616,8 @@ class WeightedBellmanLoss(LossModule):
         if not self._reads_priority(tensordict):
             return None
         return per_sample_weight(tensordict, None, self.tensor_keys.priority_weight, dtype=self._network_facts()[1],
-                                 check_priority=checks_run(self.check_inputs))
+                                 check_priority=checks_run(self.check_inputs,
+                                                           tensordict.get(self.tensor_keys.priority_weight, None)))
 
     def _validity_mask(self, tensordict: TensorDictBase, like: torch.Tensor) -> torch.Tensor | None:
         """TorchRL's validity mask of the batch (``("collector", "mask")`` and ``"shifted_valid"``, per
@@ -645,7 +646,7 @@ class WeightedBellmanLoss(LossModule):
         if action.shape == (*batch, num_actions):  # one-hot
             return (output * action.to(output.dtype)).sum(-1)
         if action.shape in (batch, (*batch, 1)) and not action.is_floating_point():  # indices
-            if checks_run(self.check_inputs) and action.device.type == "cpu" and action.numel():
+            if checks_run(self.check_inputs, action) and action.device.type == "cpu" and action.numel():
                 low, high = (int(v) for v in torch.aminmax(action.long()))
                 if low < 0 or high >= num_actions:
                     raise ValueError(
@@ -699,7 +700,7 @@ class WeightedBellmanLoss(LossModule):
 
         The checks of values (finite, signs, 0/1 flags; host reads) run where
         :func:`~torchrl_wbrm.objectives._utils.checks_run` says so: with ``check_inputs`` (default), outside
-        ``torch.compile`` and functorch transforms; the checks of keys, shapes and dtypes always run.
+        ``torch.compile``, on a batch no functorch transform wraps; the checks of keys, shapes and dtypes always run.
         A ValueError names the key and both shapes for a reward or flag that is not one value per sample, or an
         observation whose next-state counterpart has another shape, and every input key with its width when the
         widths do not add up to the value network's input features; an empty batch and NaN/inf in the reward,
@@ -715,7 +716,7 @@ class WeightedBellmanLoss(LossModule):
         """
         batch = tensordict.batch_size
         check_not_empty(batch, "Bellman-residual")
-        run = checks_run(self.check_inputs)
+        run = checks_run(self.check_inputs, tensordict.get(_next(self.tensor_keys.reward), None))
         flags = {}
         checks: list[tuple[torch.Tensor, NestedKey]] = []
         reward_shape = None
@@ -781,8 +782,8 @@ class WeightedBellmanLoss(LossModule):
 
         The diagnostics include the detached per-sample ``"td_error"`` (δ²), which :meth:`forward` writes back.
         """
-        run = checks_run(self.check_inputs)
         density_ratio = self._density_ratio(tensordict, check=False)
+        run = checks_run(self.check_inputs, density_ratio)
         priority = self._priority_weight(tensordict)
         q_value, target_value = self.bellman_error(tensordict, density_ratio if run else None)
         if run and density_ratio is not None and density_ratio.device.type == "cpu":

@@ -294,7 +294,8 @@ class WeightedLoss(LossModule):
         reads_priority = self.use_prioritized_weights in (True, "auto") and priority_key != key
         weight = per_sample_weight(
             tensordict, key, priority_key if reads_priority else None,
-            check_weight=checks_run(True), check_priority=checks_run(True),
+            check_weight=checks_run(True, tensordict.get(key, None)),
+            check_priority=checks_run(True, tensordict.get(priority_key, None)),
             why="the per-sample weight of WeightedLoss: store it there (e.g. store_density_ratio(buffer, "
                 "ratio_network=..., key=...)) or set_keys(weight=...)",
         )
@@ -307,7 +308,7 @@ class WeightedLoss(LossModule):
             if mask is not None:
                 weight = weight * per_sample(mask, batch, mask_key).to(weight.dtype)
                 source += f" masked by {mask_key!r}"
-        if checks_run(True) and weight.device.type == "cpu" and not bool(weight.sum() > 0):
+        if checks_run(True, weight) and weight.device.type == "cpu" and not bool(weight.sum() > 0):
             raise ValueError(
                 f"Every weight of the batch is 0 (entry {source}): the weighted mean Σ wᵢ lᵢ / Σ wᵢ is undefined. "
                 "Check the stored weights (a collapsed density ratio?) or sample larger batches."
