@@ -393,3 +393,21 @@ def test_rows_masked_invalid_get_weight_zero():
     selected = _terms(_call(loss, td.clone().set("density_ratio", w * keep)))
     for key in selected:
         torch.testing.assert_close(masked[key], selected[key], msg=key)
+
+
+def test_the_wrapped_losss_mask_key_setting_says_which_entry_masks():
+    """The wrapped loss's ``loss_mask_key`` (torchrl's setting) names the mask entry read; ``None`` reads none."""
+    keep = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0], dtype=torch.bool)
+    w = torch.rand(B, generator=torch.Generator().manual_seed(8)) + 0.1
+    td = _data("IQLLoss").set("density_ratio", w).set("my_valid", keep.unsqueeze(-1))
+    td.set("shifted_valid", torch.ones(B, 1, dtype=torch.bool))  # "auto" would read this one: all valid
+    loss = WeightedLoss(_build("IQLLoss", "none"))
+    unmasked = _terms(_call(loss, td.clone()))
+    loss.loss_module.loss_mask_key = "my_valid"
+    masked = _terms(_call(loss, td.clone()))
+    selected = _terms(_call(loss, td.clone().set("density_ratio", w * keep)))
+    loss.loss_module.loss_mask_key = None
+    none = _terms(_call(loss, td.clone().set("shifted_valid", torch.zeros(B, 1, dtype=torch.bool))))
+    for key in selected:
+        torch.testing.assert_close(masked[key], selected[key], msg=key)
+        torch.testing.assert_close(none[key], unmasked[key], msg=key)

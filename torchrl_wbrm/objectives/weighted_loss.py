@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
-from torchrl.objectives.common import LossModule
+from torchrl.objectives.common import AUTO_LOSS_MASK_KEYS, LossModule
 
 from torchrl_wbrm.keys import DENSITY_RATIO, PRIORITY_WEIGHT, WEIGHT_ESS
 from torchrl_wbrm.objectives._utils import check_reduction, checks_run, per_sample
@@ -302,8 +302,9 @@ class WeightedLoss(LossModule):
         source = repr(key)
         if reads_priority and tensordict.get(priority_key, None) is not None:
             source = f"{key!r} times {priority_key!r}"
-        mask_keys = getattr(self.loss_module, "_loss_mask_keys", None)
-        for mask_key in mask_keys() if callable(mask_keys) else ():  # torchrl's validity masks: weight 0 where False
+        # torchrl's validity masks (the wrapped loss's public loss_mask_key, read by torchrl's rule): weight 0 where False
+        setting = getattr(self.loss_module, "loss_mask_key", None)
+        for mask_key in () if setting is None else AUTO_LOSS_MASK_KEYS if setting == "auto" else (setting,):
             mask = tensordict.get(mask_key, None)
             if mask is not None:
                 weight = weight * per_sample(mask, batch, mask_key).to(weight.dtype)
