@@ -266,10 +266,11 @@ def store_density_ratio(
         stored[:n] = w.to(stored.dtype).reshape(stored[:n].shape)
         _follow_rows(target, key, stored.shape[1:], stored.dtype)
         return w
-    if storage[:].is_locked:  # a memory-mapped storage takes no new entry (torchrl drops one from its writes)
+    if rows.is_locked:  # a memory-mapped storage takes no new entry (torchrl drops one from its writes)
         raise ValueError(f"The replay buffer's {type(storage).__name__} is locked (memory-mapped) and holds no "
                          f"{key!r} entry, and a locked storage takes no new one: put the entry in the data before the "
                          f"first extend (e.g. data[{key!r}] = torch.ones(len(data))), then store the weights over it.")
     _follow_rows(target, key, w.shape[1:], w.dtype)
-    storage.set(slice(0, n), TensorDict({key: w}, batch_size=[n]), set_cursor=False)  # a new entry, rows 0..n-1
+    entry = TensorDict({key: w}, batch_size=[n])
+    storage.set(slice(0, n), entry if rows.device is None else entry.to(rows.device), set_cursor=False)  # rows 0..n-1
     return w
