@@ -202,8 +202,9 @@ def few_demonstrations_plot(out: Path, against: str = "episodes") -> Path | None
     default budget; dotted: the expert (100) and random actions (0). ``None`` (nothing drawn) when no cell has runs.
 
     ``against="episodes"``: ``few_demonstrations.png``, a panel per task and expert share of ``D``, against
-    ``S^e``'s number of episodes. ``against="share"``: ``expert_share.png``, a panel per task and ``S^e`` size,
-    against the expert's share of ``D`` in percent (the ``medium-v0`` cells left out)."""
+    ``S^e``'s number of episodes. ``against="share"``: ``expert_share.png``, a panel per task and ``S^e`` size
+    with runs at two shares or more, against the expert's share of ``D`` in percent (the ``medium-v0`` cells left
+    out)."""
     import re
 
     import matplotlib.pyplot as plt
@@ -226,6 +227,9 @@ def few_demonstrations_plot(out: Path, against: str = "episodes") -> Path | None
         panel, x = ((share, episodes) if against == "episodes" else (episodes, int(match.group(3))))
         methods = scores.setdefault((study["task"], panel), {})
         methods.setdefault(study["method"], {}).setdefault(x, []).append(score)
+    if against == "share":  # a panel with one share has nothing to draw a line across
+        scores = {panel: methods for panel, methods in scores.items()
+                  if len({x for xs in methods.values() for x in xs}) > 1}
     if not scores:
         return None
     order = list(FEW_DEMONSTRATION_METHODS)

@@ -401,7 +401,8 @@ def test_missing_locomotion_datasets_are_refused_naming_the_command(tmp_path, ca
 
 def test_the_share_plot_draws_a_line_per_method_against_the_expert_share(tmp_path):
     """``expert_share.png``: a panel per (task, S^e size), the expert's share of D on x, a line per method; the
-    medium cells are left out of it, and each line holds the seeds' mean."""
+    medium cells are left out of it, each line holds the seeds' mean, and an S^e size with runs at one share only
+    gets no panel."""
     import importlib.util
     import json
     from pathlib import Path
@@ -414,7 +415,8 @@ def test_the_share_plot_draws_a_line_per_method_against_the_expert_share(tmp_pat
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     scores = {("se5_expert01", "wbrm"): [10.0, 20.0], ("se5_expert05", "wbrm"): [50.0, 70.0],
-              ("se5_expert05", "bc"): [30.0, 30.0], ("se5_medium", "bc"): [5.0, 5.0]}
+              ("se5_expert05", "bc"): [30.0, 30.0], ("se5_medium", "bc"): [5.0, 5.0],
+              ("se1_expert05", "brm"): [40.0, 40.0]}
     for (cell, method), values in scores.items():
         for seed, score in enumerate(values):
             run = tmp_path / cell / method / f"seed{seed}"
