@@ -309,7 +309,7 @@ def main(argv=None) -> None:
                         help=argparse.SUPPRESS)
     parser.add_argument("--publish", default=None, metavar="NAME", type=_fragment_name,
                         help="publish the table as the docs fragment results/_generated/NAME.md (a Minari "
-                             "comparison's, e.g. locomotion_peer; without it only LQR exp1's at the defaults is "
+                             "comparison's, e.g. locomotion_peer_hopper; without it only LQR exp1's at the defaults is "
                              "published, as peer_d3rlpy)")
     parser.add_argument("--docs-dir", default=None, metavar="PATH",  # the peer worker's venv has no torchrl_wbrm
                         help="the Sphinx docs folder that receives the table (results/_generated/peer_d3rlpy.md); "

@@ -83,9 +83,10 @@ def test_the_doctests_pass(sphinx, doctrees, tmp_path):
 
 STUDIES = ["paper_tables", "weighting_study", "q_accuracy_study", "ablations", "convergence", "benchmark",
            "peer_d3rlpy", "few_demonstrations", "misspecified_q", "offline_value", "offline_value_validation",
-           "locomotion", "locomotion_peer"]
+           "locomotion", *(f"locomotion_peer_{task}" for task in ("hopper", "halfcheetah", "walker2d"))]
 #: the results page of a fragment whose page is named otherwise
-PAGES = {"offline_value_validation": "offline_value", "locomotion_peer": "locomotion"}
+PAGES = {"offline_value_validation": "offline_value",
+         **{study: "locomotion" for study in STUDIES if study.startswith("locomotion_peer_")}}
 
 
 @pytest.mark.parametrize("study", STUDIES)

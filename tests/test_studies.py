@@ -182,3 +182,24 @@ def test_a_cells_seeds_are_split_into_the_job_and_single_runs(tmp_path, monkeypa
     calls.clear()
     runs.run_cell_seeds(cell, [1, 2], budget, out)
     assert calls == [("alone", 2)]
+
+
+def test_a_seed_finished_by_a_stopped_job_gets_its_cells_labels_and_is_reported(tmp_path, monkeypatch):
+    """A job killed after its first seed leaves that seed's results without the cell's labels (the job writes them at
+    its end): running the cell again skips the seed and labels it, so the reports count it."""
+    from studies import runs
+    from torchrl_wbrm.training.config import config_as_dict
+    from torchrl_wbrm.training.reporting import load_results
+
+    cell, budget, out = _cell("brm"), [*runs.study_budget("quick"), "q.steps=7"], tmp_path
+    done = runs.cell_dir(out, cell, 0)
+    done.mkdir(parents=True)
+    config = config_as_dict(runs.compose_recipe_config(runs._overrides(cell, 0, budget)))
+    (done / "results.json").write_text(json.dumps({"status": "finished", "seed": 0, "config": config,
+                                                   "final": {"normalised_score": 1.0}}))
+    assert [r.get("study") for r in load_results(out)] == [None]
+    monkeypatch.setattr(runs, "run_cell", lambda *args: pytest.fail("a finished seed ran again"))
+    runs.run_cell_seeds(cell, [0], budget, out)
+    labelled = json.loads((done / "results.json").read_text())
+    assert labelled["study"] == {k: cell[k] for k in runs.LABELS} and labelled["final"] == {"normalised_score": 1.0}
+    assert [r["study"] for r in load_results(out)] == [labelled["study"]]

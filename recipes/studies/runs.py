@@ -158,7 +158,8 @@ def run_cell_seeds(cell: dict, seeds, budget: list[str], out: str, labels=LABELS
     into its :func:`cell_dir`, with the cell's labels in its results under ``"study"``; returns the seeds' run
     directories.
 
-    A finished seed (:func:`finished_results`, which refuses a ``results.json`` of another config) is skipped. A seed
+    A finished seed (:func:`finished_results`, which refuses a ``results.json`` of another config) is skipped; one
+    that a job stopped before the job's end left without its labels gets them, so the reports count it. A seed
     whose directory holds a checkpoint (an interrupted single run) resumes from it on its own, as :func:`run_cell`
     does, and so does a cell with one unfinished seed (a single run, which checkpoints). The other seeds train as one
     job: the cell's config with ``seeds=[...]``, by :func:`~torchrl_wbrm.training.seeds.run_seeds` into the seeds'
@@ -168,13 +169,17 @@ def run_cell_seeds(cell: dict, seeds, budget: list[str], out: str, labels=LABELS
     directory, not to a ``results.json`` there: each seed's run is read once, from its own directory.
     """
     from torchrl_wbrm.keys import CHECKPOINT
+    from torchrl_wbrm.training.results import write_json
 
     study = {k: cell[k] for k in labels}
     dirs = {int(s): cell_dir(out, cell, int(s), labels=labels) for s in seeds}
     alone, together = [], []
     for seed, run_dir in dirs.items():
-        if finished_results(run_dir, compose_recipe_config(_overrides(cell, seed, budget))) is None:
+        results = finished_results(run_dir, compose_recipe_config(_overrides(cell, seed, budget)))
+        if results is None:
             (alone if (run_dir / CHECKPOINT).is_file() else together).append(seed)
+        elif results.get("study") != study:  # finished by a job stopped before it labelled its seeds
+            write_json(run_dir / "results.json", {**results, "study": study})
     if len(together) == 1:
         alone, together = sorted(alone + together), []
     for seed in alone:
