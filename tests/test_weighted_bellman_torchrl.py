@@ -254,6 +254,21 @@ def test_a_stacked_parameter_ensemble_under_vmap_equals_each_members_own_loss(ba
                                                batches[m if batch_per_member else 0].clone())
 
 
+def test_the_per_sample_weight_is_checked_where_it_can_be_read_back():
+    """``per_sample_weight`` (every loss's one reader of ŵ and p) refuses a negative weight outside a transform and on
+    a batch a ``torch.vmap`` over other arguments shares; on a batch the vmap maps it cannot read the weight back, so
+    it returns it unchecked instead of failing on the read."""
+    from torchrl_wbrm.objectives.functional import per_sample_weight
+
+    bad = TensorDict({"density_ratio": torch.tensor([1.0, -1.0])}, [2])
+    with pytest.raises(ValueError, match=r"'density_ratio'"):
+        per_sample_weight(bad, "density_ratio")
+    with pytest.raises(ValueError, match=r"'density_ratio'"):
+        torch.vmap(lambda scale, td: per_sample_weight(td, "density_ratio") * scale, (0, None))(torch.ones(3), bad)
+    mapped = torch.vmap(lambda td: per_sample_weight(td, "density_ratio"))(torch.stack([bad, bad]))
+    assert torch.equal(mapped, torch.tensor([[1.0, -1.0], [1.0, -1.0]]))
+
+
 @pytest.mark.parametrize("fast_path", [True, False])
 def test_a_batch_shared_by_a_vmap_ensemble_is_checked_and_a_batched_one_is_not_read_back(fast_path):
     """Inside ``torch.vmap`` over the parameters only (TorchRL's ensemble idiom) the batch is a plain tensor: its

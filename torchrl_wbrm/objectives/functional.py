@@ -25,7 +25,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.utils import _reduce
 
-from torchrl_wbrm.objectives._utils import check_sign, get_entry, per_sample
+from torchrl_wbrm.objectives._utils import check_sign, checks_run, get_entry, per_sample
 
 __all__ = [
     "RESIDUALS",
@@ -144,7 +144,7 @@ def _read_weight(tensordict: TensorDictBase, key: NestedKey, value: torch.Tensor
         raise TypeError(f"Entry {key!r} has dtype {weight.dtype}; expected real, non-negative weights.")
     if not weight.is_floating_point():  # integer (or bool) weights: counts, 0/1 selections
         weight = weight.to(dtype or torch.get_default_dtype())
-    if check:
+    if checks_run(check, value):
         check_sign(weight, key, strictly_positive=False)
     return weight
 
@@ -169,8 +169,9 @@ def per_sample_weight(
     ``p_i`` from ``priority_key`` where the batch holds it (``None``: not read), each of shape ``[*B]`` or
     ``[*B, 1]``. Integer or bool entries are cast to ``dtype`` (default: torch's default dtype); complex ones are a
     TypeError. Each factor is checked finite and non-negative on CPU (:func:`~torchrl_wbrm.objectives._utils.
-    check_sign`); ``check_weight=False`` (``check_priority=False``) leaves ŵ's (``p_i``'s) check to the caller. Returns ``None`` where neither factor
-    applies.
+    check_sign`) where :func:`~torchrl_wbrm.objectives._utils.checks_run` allows it (not inside ``torch.compile``,
+    nor on a tensor a functorch transform wraps); ``check_weight=False`` (``check_priority=False``) leaves ŵ's
+    (``p_i``'s) check to the caller. Returns ``None`` where neither factor applies.
 
     Examples:
         >>> import torch

@@ -600,12 +600,12 @@ class WeightedBellmanLoss(LossModule):
 
     def _density_ratio(self, tensordict: TensorDictBase, check: bool = True) -> torch.Tensor | None:
         """ŵ, shape ``[*B]``, detached (``None`` with ``use_weights=False``); checked finite and non-negative where
-        ``check`` and :func:`~torchrl_wbrm.objectives._utils.checks_run`."""
+        ``check`` and ``check_inputs`` (:func:`~torchrl_wbrm.objectives.functional.per_sample_weight`)."""
         if not self.use_weights:
             return None
         return per_sample_weight(
             tensordict, self.tensor_keys.weight, dtype=self._network_facts()[1],
-            check_weight=check and checks_run(self.check_inputs, tensordict.get(self.tensor_keys.weight, None)),
+            check_weight=check and self.check_inputs,
             why="the per-sample weight ŵ(x, a): write the ratio network's output there, or build the loss with "
                 "use_weights=False",
         )
@@ -616,8 +616,7 @@ class WeightedBellmanLoss(LossModule):
         if not self._reads_priority(tensordict):
             return None
         return per_sample_weight(tensordict, None, self.tensor_keys.priority_weight, dtype=self._network_facts()[1],
-                                 check_priority=checks_run(self.check_inputs,
-                                                           tensordict.get(self.tensor_keys.priority_weight, None)))
+                                 check_priority=self.check_inputs)
 
     def _validity_mask(self, tensordict: TensorDictBase, like: torch.Tensor) -> torch.Tensor | None:
         """TorchRL's validity mask of the batch (``("collector", "mask")`` and ``"shifted_valid"``, per

@@ -294,8 +294,6 @@ class WeightedLoss(LossModule):
         reads_priority = self.use_prioritized_weights in (True, "auto") and priority_key != key
         weight = per_sample_weight(
             tensordict, key, priority_key if reads_priority else None,
-            check_weight=checks_run(True, tensordict.get(key, None)),
-            check_priority=checks_run(True, tensordict.get(priority_key, None)),
             why="the per-sample weight of WeightedLoss: store it there (e.g. store_density_ratio(buffer, "
                 "ratio_network=..., key=...)) or set_keys(weight=...)",
         )

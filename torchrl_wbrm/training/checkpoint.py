@@ -169,9 +169,9 @@ def _first_line(err: Exception) -> str:
 
 def read_checkpoint(path: Path) -> dict:
     """A checkpoint, read with ``torch.load(weights_only=True)``: only tensors, primitives and containers of them
-    are built, so reading a file never runs code it names. A file that
-    names anything else (a crafted pickle) is refused, unread, as not a checkpoint this project wrote; a damaged one
-    is a ``RuntimeError`` naming the file. Both are one line."""
+    are built, so reading a file never runs code it names. A file that names anything else (a crafted pickle, or a
+    NumPy array) is refused, unread, as not a checkpoint this project wrote; a damaged one is a ``RuntimeError``
+    naming the file. Both are one line."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Cannot resume: no {path.name} in {path.parent}.")
